@@ -1,0 +1,195 @@
+//! SAH binning shared by the object builder and the top-level builders.
+//!
+//! Binned SAH after I. Wald, "On fast Construction of SAH-based Bounding Volume
+//! Hierarchies", IEEE RT 2007: centroids are projected into `bins` equal
+//! intervals per axis, each bin accumulates the bounds and the (weighted)
+//! count of its primitives, and a sweep evaluates the `bins - 1` planes.
+
+use glam::Vec3;
+
+use crate::Aabb;
+
+/// The largest number of bins a build may ask for.
+pub const MAX_BINS: usize = 64;
+
+/// Maps a centroid coordinate to its bin, identically during binning and
+/// partitioning (so a partition can never disagree with the cost it was chosen by).
+#[derive(Clone, Copy, Debug)]
+pub struct BinMapping {
+    pub bins: usize,
+    pub origin: Vec3,
+    pub scale: Vec3,
+}
+
+impl BinMapping {
+    /// A mapping over centroid bounds. An axis of zero extent gets scale 0,
+    /// which puts every centroid in bin 0: such an axis yields no split.
+    pub fn new(centroid_bounds: &Aabb, bins: usize) -> Self {
+        let e = centroid_bounds.extent();
+        let k = bins as f32 * (1.0 - 1.0e-5);
+        let s = |x: f32| if x > 0.0 { k / x } else { 0.0 };
+        Self {
+            bins,
+            origin: centroid_bounds.min,
+            scale: Vec3::new(s(e.x), s(e.y), s(e.z)),
+        }
+    }
+
+    #[inline(always)]
+    pub fn bin(&self, c: Vec3, axis: usize) -> usize {
+        let b = ((c[axis] - self.origin[axis]) * self.scale[axis]) as usize; // saturating cast
+        b.min(self.bins - 1)
+    }
+
+    #[inline(always)]
+    pub fn bins3(&self, c: Vec3) -> [usize; 3] {
+        let b = ((c - self.origin) * self.scale).max(Vec3::ZERO);
+        let m = self.bins - 1;
+        [
+            (b.x as usize).min(m),
+            (b.y as usize).min(m),
+            (b.z as usize).min(m),
+        ]
+    }
+
+    #[inline]
+    pub fn axis_usable(&self, axis: usize) -> bool {
+        self.scale[axis] > 0.0
+    }
+}
+
+/// Per-axis bins: bounds and weight (primitive count) of each bin.
+#[derive(Clone, Debug)]
+pub struct Bins {
+    pub bounds: [[Aabb; MAX_BINS]; 3],
+    pub weight: [[u64; MAX_BINS]; 3],
+}
+
+impl Default for Bins {
+    fn default() -> Self {
+        Self {
+            bounds: [[Aabb::EMPTY; MAX_BINS]; 3],
+            weight: [[0; MAX_BINS]; 3],
+        }
+    }
+}
+
+/// The best plane found by [`Bins::best_split`].
+#[derive(Clone, Copy, Debug)]
+pub struct SplitCandidate {
+    pub axis: usize,
+    /// Elements whose bin is below this go left.
+    pub bin: usize,
+    /// `area(L) * weight(L) + area(R) * weight(R)` (half areas).
+    pub cost: f32,
+    pub left_bounds: Aabb,
+    pub right_bounds: Aabb,
+    pub left_weight: u64,
+    pub right_weight: u64,
+}
+
+impl Bins {
+    #[inline(always)]
+    pub fn add(&mut self, map: &BinMapping, bounds: &Aabb, centroid: Vec3, weight: u64) {
+        let b = map.bins3(centroid);
+        for (axis, &bin) in b.iter().enumerate() {
+            let slot = &mut self.bounds[axis][bin];
+            *slot = slot.union(*bounds);
+            self.weight[axis][bin] += weight;
+        }
+    }
+
+    /// Merge another set of bins (exact: unions and integer sums), so that a
+    /// chunked parallel binning gives the same result as a sequential one.
+    pub fn merge(&mut self, o: &Bins, bins: usize) {
+        for axis in 0..3 {
+            for i in 0..bins {
+                self.bounds[axis][i] = self.bounds[axis][i].union(o.bounds[axis][i]);
+                self.weight[axis][i] += o.weight[axis][i];
+            }
+        }
+    }
+
+    /// The plane of least `area * weight` sum; ties go to the lower axis, then
+    /// the lower bin. `None` when every usable axis has all weight on one side.
+    pub fn best_split(&self, map: &BinMapping) -> Option<SplitCandidate> {
+        let n = map.bins;
+        let mut best: Option<SplitCandidate> = None;
+        let mut right_area = [0.0f32; MAX_BINS];
+        let mut right_weight = [0u64; MAX_BINS];
+        let mut right_box = [Aabb::EMPTY; MAX_BINS];
+        for axis in 0..3 {
+            if !map.axis_usable(axis) {
+                continue;
+            }
+            // Suffix sweep: right side of plane i holds bins i..n.
+            let mut b = Aabb::EMPTY;
+            let mut w = 0u64;
+            for i in (1..n).rev() {
+                b = b.union(self.bounds[axis][i]);
+                w += self.weight[axis][i];
+                right_area[i] = b.half_area();
+                right_weight[i] = w;
+                right_box[i] = b;
+            }
+            let mut b = Aabb::EMPTY;
+            let mut w = 0u64;
+            for i in 1..n {
+                b = b.union(self.bounds[axis][i - 1]);
+                w += self.weight[axis][i - 1];
+                if w == 0 || right_weight[i] == 0 {
+                    continue;
+                }
+                let cost = b.half_area() * w as f32 + right_area[i] * right_weight[i] as f32;
+                if best.is_none_or(|c| cost < c.cost) {
+                    best = Some(SplitCandidate {
+                        axis,
+                        bin: i,
+                        cost,
+                        left_bounds: b,
+                        right_bounds: right_box[i],
+                        left_weight: w,
+                        right_weight: right_weight[i],
+                    });
+                }
+            }
+        }
+        best
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn splits_two_clusters() {
+        let boxes: Vec<Aabb> = [0.0f32, 0.1, 0.2, 10.0, 10.1]
+            .iter()
+            .map(|&x| Aabb::new(Vec3::new(x, 0.0, 0.0), Vec3::new(x + 0.05, 1.0, 1.0)))
+            .collect();
+        let cb = boxes.iter().fold(Aabb::EMPTY, |b, x| b.grow(x.center()));
+        let map = BinMapping::new(&cb, 16);
+        let mut bins = Bins::default();
+        for b in &boxes {
+            bins.add(&map, b, b.center(), 1);
+        }
+        let s = bins.best_split(&map).unwrap();
+        assert_eq!(s.axis, 0);
+        assert_eq!((s.left_weight, s.right_weight), (3, 2));
+        for b in &boxes {
+            let left = map.bin(b.center(), 0) < s.bin;
+            assert_eq!(left, b.min.x < 5.0);
+        }
+    }
+
+    #[test]
+    fn degenerate_axis_is_unusable() {
+        let cb = Aabb::new(Vec3::ZERO, Vec3::new(0.0, 1.0, 0.0));
+        let map = BinMapping::new(&cb, 8);
+        assert!(!map.axis_usable(0));
+        assert!(map.axis_usable(1));
+        assert_eq!(map.bin(Vec3::new(0.0, 1.0, 0.0), 1), 7);
+        assert_eq!(map.bin(Vec3::new(0.0, -5.0, 0.0), 1), 0);
+    }
+}

@@ -1,0 +1,380 @@
+//! Top-down binned SAH builder over boxes and centroids.
+//!
+//! The builder knows nothing of triangles: it takes one box and one centroid
+//! per primitive (as madmann91/bvh v2 does), so the object builder and the
+//! top-level builders share it. Parallelism follows the usual recipe: the two
+//! halves of a split are built as `rayon::join` tasks above a size threshold,
+//! and large ranges are binned and partitioned in fixed-size chunks.
+//!
+//! Determinism: every node's position in the output is a function of its
+//! primitive range only (a subtree over primitives `b..e` owns node slots
+//! `2b+1 .. 2e-1` for its descendants, enough for the worst case of one
+//! primitive per leaf), chunk sizes are constants, and merges are exact
+//! (box unions and integer sums). The tree is therefore identical for any
+//! thread count; a final pass compacts the slots into depth-first order.
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use super::binning::{BinMapping, Bins, MAX_BINS};
+use super::{Bvh, BvhNode};
+use crate::{Aabb, Error};
+
+/// Depth from which the builder stops using the SAH and splits at the object
+/// median instead. Median splits halve the range, so no tree is deeper than
+/// `MEDIAN_FROM_DEPTH + 32`, whatever the input (see [`MAX_DEPTH`]).
+pub const MEDIAN_FROM_DEPTH: u32 = 32;
+
+/// Upper bound on the depth (root = 1) of a tree built here; traversal stacks
+/// are sized by it.
+pub const MAX_DEPTH: u32 = MEDIAN_FROM_DEPTH + 32;
+
+/// Ranges at least this long are binned in parallel chunks.
+const PARALLEL_BINNING_MIN: usize = 1 << 15;
+/// Chunk length of parallel binning and partitioning (a constant, so the
+/// result does not depend on the number of threads).
+const CHUNK: usize = 1 << 13;
+
+/// Parameters of the binned SAH build. The defaults suit triangle BVHs traced
+/// with the scalar kernels of this crate.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BuildParams {
+    /// SAH bins per axis (2 ..= 64).
+    pub bins: usize,
+    /// SAH cost of traversing an inner node.
+    pub traversal_cost: f32,
+    /// SAH cost of intersecting one primitive.
+    pub intersection_cost: f32,
+    /// Largest leaf; ranges above it are always split.
+    pub max_leaf_size: u32,
+    /// Subtrees over more primitives than this are built as parallel tasks.
+    pub parallel_threshold: usize,
+}
+
+impl Default for BuildParams {
+    fn default() -> Self {
+        Self {
+            bins: 32,
+            traversal_cost: 1.0,
+            intersection_cost: 1.0,
+            max_leaf_size: 8,
+            parallel_threshold: 4096,
+        }
+    }
+}
+
+impl BuildParams {
+    pub fn check(&self) -> Result<(), Error> {
+        if !(2..=MAX_BINS).contains(&self.bins) {
+            return Err(Error::InvalidParameter(format!(
+                "bins must be in 2..={MAX_BINS}, got {}",
+                self.bins
+            )));
+        }
+        if self.max_leaf_size == 0 {
+            return Err(Error::InvalidParameter("max_leaf_size must be at least 1".into()));
+        }
+        if !(self.traversal_cost >= 0.0 && self.intersection_cost > 0.0)
+            || !self.traversal_cost.is_finite()
+            || !self.intersection_cost.is_finite()
+        {
+            return Err(Error::InvalidParameter(
+                "costs must be finite, traversal >= 0 and intersection > 0".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+struct Ctx<'a> {
+    boxes: &'a [Aabb],
+    centroids: &'a [Vec3],
+    params: &'a BuildParams,
+}
+
+/// Build a BVH over `boxes` (one per primitive) split by `centroids`.
+///
+/// Every box must be finite and non-empty. An empty input gives an empty BVH.
+pub fn build_bvh(boxes: &[Aabb], centroids: &[Vec3], params: &BuildParams) -> Result<Bvh, Error> {
+    params.check()?;
+    if boxes.len() != centroids.len() {
+        return Err(Error::InvalidParameter(format!(
+            "{} boxes but {} centroids",
+            boxes.len(),
+            centroids.len()
+        )));
+    }
+    let n = boxes.len();
+    if n >= (1usize << 31) {
+        return Err(Error::TooManyPrimitives(n));
+    }
+    if n == 0 {
+        return Ok(Bvh::default());
+    }
+    if let Some(i) = (0..n)
+        .into_par_iter()
+        .find_first(|&i| !boxes[i].is_finite() || boxes[i].is_empty() || !centroids[i].is_finite())
+    {
+        return Err(Error::InvalidBounds { index: i });
+    }
+
+    let (bounds, cbounds) = range_bounds(boxes, centroids);
+    let mut prims: Vec<u32> = (0..n as u32).collect();
+    let mut scratch = vec![0u32; n];
+    let mut slots = vec![BvhNode::zeroed_node(); 2 * n - 1];
+    let ctx = Ctx {
+        boxes,
+        centroids,
+        params,
+    };
+    let (root_slot, desc) = slots.split_at_mut(1);
+    root_slot[0] = build_node(&ctx, &mut prims, &mut scratch, desc, 0, 1, bounds, cbounds, 1);
+    let nodes = compact(&slots);
+    let bvh = Bvh {
+        nodes,
+        prim_indices: prims,
+    };
+    #[cfg(debug_assertions)]
+    if let Err(e) = bvh.validate(boxes) {
+        panic!("BVH builder produced an invalid tree: {e}");
+    }
+    Ok(bvh)
+}
+
+impl BvhNode {
+    fn zeroed_node() -> Self {
+        bytemuck::Zeroable::zeroed()
+    }
+}
+
+/// Bounds of the boxes and of the centroids, in parallel for long inputs.
+fn range_bounds(boxes: &[Aabb], centroids: &[Vec3]) -> (Aabb, Aabb) {
+    let fold = |(b, c): (Aabb, Aabb), (x, y): (&Aabb, &Vec3)| (b.union(*x), c.grow(*y));
+    let join = |(a, b): (Aabb, Aabb), (c, d): (Aabb, Aabb)| (a.union(c), b.union(d));
+    if boxes.len() >= PARALLEL_BINNING_MIN {
+        boxes
+            .par_chunks(CHUNK)
+            .zip(centroids.par_chunks(CHUNK))
+            .map(|(b, c)| b.iter().zip(c).fold((Aabb::EMPTY, Aabb::EMPTY), fold))
+            .reduce(|| (Aabb::EMPTY, Aabb::EMPTY), join)
+    } else {
+        boxes.iter().zip(centroids).fold((Aabb::EMPTY, Aabb::EMPTY), fold)
+    }
+}
+
+fn bounds_of(ctx: &Ctx, prims: &[u32]) -> (Aabb, Aabb) {
+    prims.iter().fold((Aabb::EMPTY, Aabb::EMPTY), |(b, c), &p| {
+        (b.union(ctx.boxes[p as usize]), c.grow(ctx.centroids[p as usize]))
+    })
+}
+
+fn bin_range(ctx: &Ctx, prims: &[u32], map: &BinMapping) -> Bins {
+    let bin_chunk = |chunk: &[u32]| {
+        let mut bins = Bins::default();
+        for &p in chunk {
+            bins.add(map, &ctx.boxes[p as usize], ctx.centroids[p as usize], 1);
+        }
+        bins
+    };
+    if prims.len() >= PARALLEL_BINNING_MIN {
+        let parts: Vec<Bins> = prims.par_chunks(CHUNK).map(bin_chunk).collect();
+        let mut all = Bins::default();
+        for p in &parts {
+            all.merge(p, map.bins);
+        }
+        all
+    } else {
+        bin_chunk(prims)
+    }
+}
+
+/// Partition `prims` so that those for which `is_left` holds come first.
+/// Returns the left count and the centroid bounds of both sides.
+fn partition<F>(ctx: &Ctx, prims: &mut [u32], scratch: &mut [u32], is_left: F) -> (usize, Aabb, Aabb)
+where
+    F: Fn(Vec3) -> bool + Sync,
+{
+    let c = ctx.centroids;
+    if prims.len() < PARALLEL_BINNING_MIN {
+        let (mut i, mut j) = (0, prims.len());
+        let (mut cl, mut cr) = (Aabb::EMPTY, Aabb::EMPTY);
+        while i < j {
+            let p = c[prims[i] as usize];
+            if is_left(p) {
+                cl = cl.grow(p);
+                i += 1;
+            } else {
+                cr = cr.grow(p);
+                j -= 1;
+                prims.swap(i, j);
+            }
+        }
+        return (i, cl, cr);
+    }
+    // Chunked stable partition through `scratch`.
+    let counts: Vec<(usize, Aabb, Aabb)> = prims
+        .par_chunks(CHUNK)
+        .map(|chunk| {
+            let (mut n, mut cl, mut cr) = (0, Aabb::EMPTY, Aabb::EMPTY);
+            for &q in chunk {
+                let p = c[q as usize];
+                if is_left(p) {
+                    n += 1;
+                    cl = cl.grow(p);
+                } else {
+                    cr = cr.grow(p);
+                }
+            }
+            (n, cl, cr)
+        })
+        .collect();
+    let left: usize = counts.iter().map(|x| x.0).sum();
+    let (mut rest_l, mut rest_r) = scratch.split_at_mut(left);
+    let mut dests = Vec::with_capacity(counts.len());
+    for (k, &(nl, _, _)) in counts.iter().enumerate() {
+        let len = CHUNK.min(prims.len() - k * CHUNK);
+        let (a, tail_l) = std::mem::take(&mut rest_l).split_at_mut(nl);
+        let (b, tail_r) = std::mem::take(&mut rest_r).split_at_mut(len - nl);
+        rest_l = tail_l;
+        rest_r = tail_r;
+        dests.push((a, b));
+    }
+    prims
+        .par_chunks(CHUNK)
+        .zip(dests.into_par_iter())
+        .for_each(|(chunk, (dl, dr))| {
+            let (mut i, mut j) = (0, 0);
+            for &q in chunk {
+                if is_left(c[q as usize]) {
+                    dl[i] = q;
+                    i += 1;
+                } else {
+                    dr[j] = q;
+                    j += 1;
+                }
+            }
+        });
+    prims
+        .par_chunks_mut(CHUNK)
+        .zip(scratch.par_chunks(CHUNK))
+        .for_each(|(d, s)| d.copy_from_slice(s));
+    let (cl, cr) = counts
+        .iter()
+        .fold((Aabb::EMPTY, Aabb::EMPTY), |(a, b), x| (a.union(x.1), b.union(x.2)));
+    (left, cl, cr)
+}
+
+/// Build the subtree over `prims` (global offset `first`) whose descendants go
+/// into `desc` (global slot `desc_first`). Returns the subtree's root node.
+#[allow(clippy::too_many_arguments)]
+fn build_node(
+    ctx: &Ctx,
+    prims: &mut [u32],
+    scratch: &mut [u32],
+    desc: &mut [BvhNode],
+    first: u32,
+    desc_first: u32,
+    bounds: Aabb,
+    cbounds: Aabb,
+    depth: u32,
+) -> BvhNode {
+    let n = prims.len();
+    let p = ctx.params;
+    let leaf = BvhNode::leaf(bounds, first, n as u32);
+    if n == 1 {
+        return leaf;
+    }
+    let fits_leaf = n <= p.max_leaf_size as usize;
+    let use_sah = depth < MEDIAN_FROM_DEPTH && cbounds.extent().max_element() > 0.0;
+
+    let split = if use_sah {
+        let map = BinMapping::new(&cbounds, p.bins);
+        let bins = bin_range(ctx, prims, &map);
+        bins.best_split(&map).map(|s| (map, s))
+    } else {
+        None
+    };
+
+    let (mid, lb, lcb, rb, rcb) = match split {
+        Some((map, s)) => {
+            // Compare costs multiplied through by the node's area, which also
+            // handles nodes of zero area.
+            let area = bounds.half_area();
+            let split_cost = p.traversal_cost * area + p.intersection_cost * s.cost;
+            let leaf_cost = p.intersection_cost * n as f32 * area;
+            if fits_leaf && leaf_cost <= split_cost {
+                return leaf;
+            }
+            let axis = s.axis;
+            let (mid, lcb, rcb) =
+                partition(ctx, prims, scratch, |c| map.bin(c, axis) < s.bin);
+            debug_assert_eq!(mid as u64, s.left_weight);
+            (mid, s.left_bounds, lcb, s.right_bounds, rcb)
+        }
+        None => {
+            if fits_leaf {
+                return leaf;
+            }
+            // Object median along the longest centroid axis, or an index
+            // median when all centroids coincide.
+            let mid = n / 2;
+            if cbounds.extent().max_element() > 0.0 {
+                let axis = cbounds.largest_axis();
+                let c = ctx.centroids;
+                prims.select_nth_unstable_by(mid, |&a, &b| {
+                    c[a as usize][axis].total_cmp(&c[b as usize][axis]).then(a.cmp(&b))
+                });
+            }
+            let (l, r) = prims.split_at(mid);
+            let (lb, lcb) = bounds_of(ctx, l);
+            let (rb, rcb) = bounds_of(ctx, r);
+            (mid, lb, lcb, rb, rcb)
+        }
+    };
+
+    let nl = mid;
+    let (pair, rest) = desc.split_at_mut(2);
+    let (left_desc, right_desc) = rest.split_at_mut(2 * nl - 2);
+    let (lp, rp) = prims.split_at_mut(mid);
+    let (ls, rs) = scratch.split_at_mut(mid);
+    let left_first = first;
+    let right_first = first + nl as u32;
+    let left_desc_first = desc_first + 2;
+    let right_desc_first = desc_first + 2 * nl as u32;
+    let mut build_left = move || {
+        build_node(ctx, lp, ls, left_desc, left_first, left_desc_first, lb, lcb, depth + 1)
+    };
+    let mut build_right = move || {
+        build_node(ctx, rp, rs, right_desc, right_first, right_desc_first, rb, rcb, depth + 1)
+    };
+    let (l, r) = if n > p.parallel_threshold {
+        rayon::join(build_left, build_right)
+    } else {
+        (build_left(), build_right())
+    };
+    pair[0] = l;
+    pair[1] = r;
+    BvhNode::inner(bounds, desc_first)
+}
+
+/// Renumber the used slots into depth-first order (each node's children pair
+/// allocated when the node is visited), dropping the unused slots.
+fn compact(slots: &[BvhNode]) -> Vec<BvhNode> {
+    let mut out = Vec::with_capacity(slots.len());
+    out.push(slots[0]);
+    let mut stack = vec![0usize];
+    while let Some(i) = stack.pop() {
+        let node = out[i];
+        if node.is_leaf() {
+            continue;
+        }
+        let old = node.index as usize;
+        let new = out.len();
+        out.push(slots[old]);
+        out.push(slots[old + 1]);
+        out[i].index = new as u32;
+        stack.push(new + 1);
+        stack.push(new);
+    }
+    out
+}

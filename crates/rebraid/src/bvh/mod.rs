@@ -1,0 +1,40 @@
+//! Binary BVHs: node layout, builder, traversal, validation and statistics.
+
+pub mod binning;
+mod build;
+mod node;
+mod stats;
+mod traverse;
+mod validate;
+
+pub use build::{BuildParams, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh};
+pub use node::BvhNode;
+pub use stats::{BvhStats, SahCosts};
+pub use traverse::{BoxRay, TRAVERSAL_STACK, TraversalCounters};
+
+/// A binary BVH over primitives known only by index.
+///
+/// `nodes[0]` is the root (when there is one); `prim_indices` lists the
+/// primitives in leaf order, so a leaf's range indexes into it.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Bvh {
+    pub nodes: Vec<BvhNode>,
+    pub prim_indices: Vec<u32>,
+}
+
+impl Bvh {
+    #[inline]
+    pub fn is_empty(&self) -> bool {
+        self.nodes.is_empty()
+    }
+
+    /// Bounds of the whole tree (empty for an empty tree).
+    pub fn bounds(&self) -> crate::Aabb {
+        self.nodes.first().map_or(crate::Aabb::EMPTY, |n| n.bounds())
+    }
+
+    /// Bytes of the node and index arrays.
+    pub fn bytes(&self) -> usize {
+        std::mem::size_of_val(self.nodes.as_slice()) + std::mem::size_of_val(self.prim_indices.as_slice())
+    }
+}

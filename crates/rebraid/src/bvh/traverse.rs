@@ -1,0 +1,136 @@
+//! Scalar traversal of binary BVHs: iterative, fixed-size stack, near child first.
+
+use glam::Vec3;
+
+use super::{Bvh, BvhNode, MAX_DEPTH};
+
+/// Entries of a traversal stack: enough for any tree the builders emit, since
+/// each level pushes at most one node.
+pub const TRAVERSAL_STACK: usize = MAX_DEPTH as usize;
+
+/// Robustness factor for the slab test: `t_far` is scaled by `1 + 2 * gamma(3)`
+/// (T. Ize, "Robust BVH Ray Traversal", JCGT 2(2), 2013) so that rounding in the
+/// box test never culls a box a hit lies in.
+const ROBUST_FAR: f32 = 1.0 + 2.0 * (3.0 * f32::EPSILON * 0.5) / (1.0 - 3.0 * f32::EPSILON * 0.5);
+
+/// A ray prepared for slab tests: origin and reciprocal direction.
+///
+/// A zero direction component gives an infinite reciprocal; the slab test
+/// then yields `+-inf` (outside or inside that slab) or NaN when the origin
+/// lies exactly on the slab plane, which the NaN-ignoring `min`/`max` below
+/// treat as inside.
+#[derive(Clone, Copy, Debug)]
+pub struct BoxRay {
+    pub origin: Vec3,
+    pub inv_dir: Vec3,
+}
+
+impl BoxRay {
+    #[inline(always)]
+    pub fn new(origin: Vec3, dir: Vec3) -> Self {
+        Self {
+            origin,
+            inv_dir: Vec3::ONE / dir,
+        }
+    }
+
+    /// Entry distance into the node's box, or `+inf` on a miss.
+    #[inline(always)]
+    pub fn hit_node(&self, node: &BvhNode, t_min: f32, t_max: f32) -> f32 {
+        let t0 = (Vec3::from_array(node.min) - self.origin) * self.inv_dir;
+        let t1 = (Vec3::from_array(node.max) - self.origin) * self.inv_dir;
+        // f32::min/max return the non-NaN operand.
+        let near = t0.x.min(t1.x).max(t0.y.min(t1.y)).max(t0.z.min(t1.z)).max(t_min);
+        let far = t0.x.max(t1.x).min(t0.y.max(t1.y)).min(t0.z.max(t1.z)) * ROBUST_FAR;
+        let far = far.min(t_max);
+        if near <= far { near } else { f32::INFINITY }
+    }
+}
+
+/// Work counters of one traversal, for heat maps and statistics.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct TraversalCounters {
+    /// Inner nodes whose children were tested.
+    pub inner_visited: u32,
+    /// Leaves entered.
+    pub leaves_visited: u32,
+}
+
+impl Bvh {
+    /// Visit every leaf whose box the ray segment `[t_min, t_max]` enters, near
+    /// children first. `leaf(node, t_max)` is called with each leaf and the
+    /// current `t_max`, which it may shrink (closest hit); it returns `true` to
+    /// stop the traversal (any hit).
+    ///
+    /// No allocation: the stack is a fixed array of [`TRAVERSAL_STACK`] entries.
+    #[inline(always)]
+    pub fn traverse<F>(
+        &self,
+        ray: &BoxRay,
+        t_min: f32,
+        mut t_max: f32,
+        counters: &mut TraversalCounters,
+        mut leaf: F,
+    ) where
+        F: FnMut(&BvhNode, &mut f32) -> bool,
+    {
+        let nodes = self.nodes.as_slice();
+        let Some(root) = nodes.first() else {
+            return;
+        };
+        if ray.hit_node(root, t_min, t_max) == f32::INFINITY {
+            return;
+        }
+        let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
+        let mut sp = 0usize;
+        let mut current = 0u32;
+        loop {
+            let node = &nodes[current as usize];
+            if node.is_leaf() {
+                counters.leaves_visited += 1;
+                if leaf(node, &mut t_max) {
+                    return;
+                }
+            } else {
+                counters.inner_visited += 1;
+                let c = node.index;
+                let dl = ray.hit_node(&nodes[c as usize], t_min, t_max);
+                let dr = ray.hit_node(&nodes[c as usize + 1], t_min, t_max);
+                match (dl < f32::INFINITY, dr < f32::INFINITY) {
+                    (true, true) => {
+                        let (near, far) = if dl <= dr {
+                            (c, (c + 1, dr))
+                        } else {
+                            (c + 1, (c, dl))
+                        };
+                        stack[sp] = far;
+                        sp += 1;
+                        current = near;
+                        continue;
+                    }
+                    (true, false) => {
+                        current = c;
+                        continue;
+                    }
+                    (false, true) => {
+                        current = c + 1;
+                        continue;
+                    }
+                    (false, false) => {}
+                }
+            }
+            // Pop, skipping nodes that a shrunken t_max now culls.
+            loop {
+                if sp == 0 {
+                    return;
+                }
+                sp -= 1;
+                let (node, entry) = stack[sp];
+                if entry <= t_max {
+                    current = node;
+                    break;
+                }
+            }
+        }
+    }
+}

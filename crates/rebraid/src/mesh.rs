@@ -1,0 +1,306 @@
+//! Triangle meshes and their BVHs (the object level of a two-level BVH).
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::bvh::{BoxRay, BuildParams, Bvh, BvhNode, BvhStats, SahCosts, TraversalCounters, build_bvh};
+use crate::triangle::{WatertightRay, geometric_normal, intersect_triangle, is_degenerate};
+use crate::{Aabb, Error, Hit, INVALID_ID, Ray};
+
+/// An indexed triangle mesh: vertex positions and one `[u32; 3]` per triangle.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TriangleMesh {
+    pub positions: Vec<Vec3>,
+    pub indices: Vec<[u32; 3]>,
+}
+
+impl TriangleMesh {
+    /// A checked mesh (see [`TriangleMesh::validate`]).
+    pub fn new(positions: Vec<Vec3>, indices: Vec<[u32; 3]>) -> Result<Self, Error> {
+        let m = Self { positions, indices };
+        m.validate()?;
+        Ok(m)
+    }
+
+    /// A mesh of independent triangles (a "soup").
+    pub fn from_triangles(tris: &[[Vec3; 3]]) -> Result<Self, Error> {
+        let positions = tris.iter().flatten().copied().collect();
+        let indices = (0..tris.len() as u32).map(|i| [3 * i, 3 * i + 1, 3 * i + 2]).collect();
+        Self::new(positions, indices)
+    }
+
+    /// Every vertex finite, every index in range. Degenerate triangles are fine.
+    pub fn validate(&self) -> Result<(), Error> {
+        if let Some(i) = self.positions.iter().position(|p| !p.is_finite()) {
+            return Err(Error::NonFiniteVertex {
+                index: i,
+                value: self.positions[i].to_array(),
+            });
+        }
+        let nv = self.positions.len();
+        for (t, tri) in self.indices.iter().enumerate() {
+            if let Some(&v) = tri.iter().find(|&&v| v as usize >= nv) {
+                return Err(Error::IndexOutOfRange {
+                    triangle: t,
+                    vertex: v,
+                    vertex_count: nv,
+                });
+            }
+        }
+        if self.indices.len() >= (1 << 31) {
+            return Err(Error::TooManyPrimitives(self.indices.len()));
+        }
+        Ok(())
+    }
+
+    #[inline]
+    pub fn len(&self) -> usize {
+        self.indices.len()
+    }
+
+    #[inline]
+    pub fn is_empty(&self) -> bool {
+        self.indices.is_empty()
+    }
+
+    /// The three vertices of triangle `i` (panics if `i` is out of range).
+    #[inline]
+    pub fn triangle(&self, i: usize) -> [Vec3; 3] {
+        let [a, b, c] = self.indices[i];
+        [
+            self.positions[a as usize],
+            self.positions[b as usize],
+            self.positions[c as usize],
+        ]
+    }
+
+    /// Bounds of the referenced vertices.
+    pub fn bounds(&self) -> Aabb {
+        (0..self.len()).fold(Aabb::EMPTY, |b, i| {
+            self.triangle(i).iter().fold(b, |b, &p| b.grow(p))
+        })
+    }
+
+    /// One box and one centroid per triangle (box centres, as Embree bins by).
+    pub fn prim_boxes(&self) -> (Vec<Aabb>, Vec<Vec3>) {
+        (0..self.len())
+            .into_par_iter()
+            .with_min_len(4096)
+            .map(|i| {
+                let b = Aabb::from_points(&self.triangle(i));
+                (b, b.center())
+            })
+            .unzip()
+    }
+}
+
+/// A BVH over one mesh with the triangles stored in leaf order, as the
+/// watertight intersector wants them (three vertices, 36 bytes).
+///
+/// Triangles of zero area are kept (so every primitive stays referenced) but
+/// stored collapsed to one point, which the intersector never hits.
+#[derive(Clone, Debug, Default)]
+pub struct MeshBvh {
+    pub bvh: Bvh,
+    /// Vertices of each triangle, in leaf order.
+    pub triangles: Vec<[Vec3; 3]>,
+}
+
+impl MeshBvh {
+    /// Validate the mesh and build its BVH.
+    pub fn build(mesh: &TriangleMesh, params: &BuildParams) -> Result<Self, Error> {
+        mesh.validate()?;
+        let (boxes, centroids) = mesh.prim_boxes();
+        let bvh = build_bvh(&boxes, &centroids, params)?;
+        let triangles = bvh
+            .prim_indices
+            .par_iter()
+            .with_min_len(4096)
+            .map(|&p| {
+                let [a, b, c] = mesh.triangle(p as usize);
+                if is_degenerate(a, b, c) { [a, a, a] } else { [a, b, c] }
+            })
+            .collect();
+        Ok(Self { bvh, triangles })
+    }
+
+    /// Number of triangles.
+    #[inline]
+    pub fn len(&self) -> usize {
+        self.triangles.len()
+    }
+
+    #[inline]
+    pub fn is_empty(&self) -> bool {
+        self.triangles.is_empty()
+    }
+
+    /// Intersect the triangles of one leaf, shrinking `t_max` and recording
+    /// the closest hit as (t, u, v, leaf-order index).
+    #[inline(always)]
+    pub fn intersect_leaf(
+        &self,
+        wray: &WatertightRay,
+        node: &BvhNode,
+        t_min: f32,
+        t_max: &mut f32,
+        best: &mut Option<(f32, f32, f32, u32)>,
+    ) {
+        for k in node.prim_range() {
+            let [a, b, c] = self.triangles[k];
+            if let Some((t, u, v)) = intersect_triangle(wray, a, b, c, t_min, *t_max) {
+                // `intersect_triangle` accepts t == t_max; keep the first of
+                // equal hits so that results do not depend on visiting order
+                // more than necessary.
+                if best.is_none_or(|h| t < h.0) {
+                    *t_max = t;
+                    *best = Some((t, u, v, k as u32));
+                }
+            }
+        }
+    }
+
+    /// True when some triangle of the leaf is hit within `[t_min, t_max]`.
+    #[inline(always)]
+    pub fn occluded_leaf(&self, wray: &WatertightRay, node: &BvhNode, t_min: f32, t_max: f32) -> bool {
+        node.prim_range().any(|k| {
+            let [a, b, c] = self.triangles[k];
+            intersect_triangle(wray, a, b, c, t_min, t_max).is_some()
+        })
+    }
+
+    /// Turn a leaf-order hit into a [`Hit`] with the mesh's primitive id.
+    #[inline]
+    pub fn make_hit(&self, (t, u, v, k): (f32, f32, f32, u32)) -> Hit {
+        let [a, b, c] = self.triangles[k as usize];
+        Hit {
+            t,
+            u,
+            v,
+            prim_id: self.bvh.prim_indices[k as usize],
+            object_id: INVALID_ID,
+            instance_id: INVALID_ID,
+            normal: geometric_normal(a, b, c),
+        }
+    }
+
+    /// Closest hit along the ray, if any.
+    pub fn intersect(&self, ray: &Ray) -> Option<Hit> {
+        self.intersect_counted(ray, &mut TraversalCounters::default())
+    }
+
+    /// [`MeshBvh::intersect`] that also counts the nodes it visits.
+    pub fn intersect_counted(&self, ray: &Ray, counters: &mut TraversalCounters) -> Option<Hit> {
+        if !ray.is_valid() {
+            return None;
+        }
+        let bray = BoxRay::new(ray.origin, ray.dir);
+        let wray = WatertightRay::new(ray.origin, ray.dir);
+        let mut best = None;
+        self.bvh.traverse(&bray, ray.t_min, ray.t_max, counters, |node, t_max| {
+            self.intersect_leaf(&wray, node, ray.t_min, t_max, &mut best);
+            false
+        });
+        best.map(|h| self.make_hit(h))
+    }
+
+    /// True when anything is hit within `[t_min, t_max]` (any hit).
+    pub fn occluded(&self, ray: &Ray) -> bool {
+        if !ray.is_valid() {
+            return false;
+        }
+        let bray = BoxRay::new(ray.origin, ray.dir);
+        let wray = WatertightRay::new(ray.origin, ray.dir);
+        let mut hit = false;
+        self.bvh.traverse(
+            &bray,
+            ray.t_min,
+            ray.t_max,
+            &mut TraversalCounters::default(),
+            |node, t_max| {
+                hit = self.occluded_leaf(&wray, node, ray.t_min, *t_max);
+                hit
+            },
+        );
+        hit
+    }
+
+    /// Closest hits of many rays, in parallel; `out[i]` answers `rays[i]`.
+    pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
+        assert_eq!(rays.len(), out.len(), "one output per ray");
+        out.par_iter_mut()
+            .zip(rays.par_iter())
+            .with_min_len(256)
+            .for_each(|(o, r)| *o = self.intersect(r));
+    }
+
+    /// Occlusion of many rays, in parallel; `out[i]` answers `rays[i]`.
+    pub fn occluded_batch(&self, rays: &[Ray], out: &mut [bool]) {
+        assert_eq!(rays.len(), out.len(), "one output per ray");
+        out.par_iter_mut()
+            .zip(rays.par_iter())
+            .with_min_len(256)
+            .for_each(|(o, r)| *o = self.occluded(r));
+    }
+
+    /// Tree statistics; `bytes` includes the triangle storage.
+    pub fn stats(&self) -> BvhStats {
+        let mut s = self.bvh.stats(SahCosts::default());
+        s.bytes += std::mem::size_of_val(self.triangles.as_slice());
+        s
+    }
+
+    /// Validate the tree against the triangles it stores.
+    pub fn validate(&self) -> Result<(), String> {
+        let mut boxes = vec![Aabb::EMPTY; self.len()];
+        for (k, &p) in self.bvh.prim_indices.iter().enumerate() {
+            let b = boxes
+                .get_mut(p as usize)
+                .ok_or_else(|| format!("primitive id {p} out of range"))?;
+            *b = Aabb::from_points(&self.triangles[k]);
+        }
+        self.bvh.validate(&boxes)
+    }
+}
+
+/// Brute-force reference: every ray against every triangle. Used by tests
+/// and by `validate` commands to check the traversal kernels.
+pub fn brute_force_intersect(mesh: &TriangleMesh, ray: &Ray) -> Option<Hit> {
+    if !ray.is_valid() {
+        return None;
+    }
+    let wray = WatertightRay::new(ray.origin, ray.dir);
+    let mut best: Option<Hit> = None;
+    let mut t_max = ray.t_max;
+    for i in 0..mesh.len() {
+        let [a, b, c] = mesh.triangle(i);
+        let [a, b, c] = if is_degenerate(a, b, c) { [a, a, a] } else { [a, b, c] };
+        if let Some((t, u, v)) = intersect_triangle(&wray, a, b, c, ray.t_min, t_max)
+            && best.is_none_or(|h| t < h.t)
+        {
+            t_max = t;
+            best = Some(Hit {
+                t,
+                u,
+                v,
+                prim_id: i as u32,
+                object_id: INVALID_ID,
+                instance_id: INVALID_ID,
+                normal: geometric_normal(a, b, c),
+            });
+        }
+    }
+    best
+}
+
+/// Brute-force occlusion reference.
+pub fn brute_force_occluded(mesh: &TriangleMesh, ray: &Ray) -> bool {
+    if !ray.is_valid() {
+        return false;
+    }
+    let wray = WatertightRay::new(ray.origin, ray.dir);
+    (0..mesh.len()).any(|i| {
+        let [a, b, c] = mesh.triangle(i);
+        !is_degenerate(a, b, c) && intersect_triangle(&wray, a, b, c, ray.t_min, ray.t_max).is_some()
+    })
+}

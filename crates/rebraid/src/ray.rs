@@ -1,0 +1,120 @@
+//! Rays and hit records.
+
+use glam::Vec3;
+
+use crate::Error;
+
+/// Marks an absent object or instance id in a [`Hit`].
+pub const INVALID_ID: u32 = u32::MAX;
+
+/// A ray segment `origin + t * dir` for `t` in `[t_min, t_max]`.
+///
+/// The direction need not be normalised; `t` is measured in units of `dir`.
+/// Queries accept any ray: a ray with a zero or non-finite direction, a
+/// non-finite origin or an empty interval hits nothing. Use [`Ray::new`] to
+/// have such rays rejected with an error instead.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C)]
+pub struct Ray {
+    pub origin: Vec3,
+    pub t_min: f32,
+    pub dir: Vec3,
+    pub t_max: f32,
+}
+
+impl Ray {
+    /// A checked ray: finite origin and direction, a non-zero direction, and
+    /// `0 <= t_min <= t_max` (`t_max` may be infinite).
+    pub fn new(origin: Vec3, dir: Vec3, t_min: f32, t_max: f32) -> Result<Self, Error> {
+        let r = Self {
+            origin,
+            dir,
+            t_min,
+            t_max,
+        };
+        if !origin.is_finite() || !dir.is_finite() {
+            return Err(Error::InvalidRay("origin and direction must be finite"));
+        }
+        if dir == Vec3::ZERO {
+            return Err(Error::InvalidRay("direction has zero length"));
+        }
+        if t_min.is_nan() || t_max.is_nan() || t_min < 0.0 || t_min > t_max {
+            return Err(Error::InvalidRay("need 0 <= t_min <= t_max"));
+        }
+        Ok(r)
+    }
+
+    /// An unchecked ray over `[0, inf)`.
+    #[inline]
+    pub fn infinite(origin: Vec3, dir: Vec3) -> Self {
+        Self {
+            origin,
+            dir,
+            t_min: 0.0,
+            t_max: f32::INFINITY,
+        }
+    }
+
+    /// True when a query can hit anything with this ray (see the type's docs).
+    #[inline]
+    pub fn is_valid(&self) -> bool {
+        self.origin.is_finite()
+            && self.dir.is_finite()
+            && self.dir != Vec3::ZERO
+            && self.t_min <= self.t_max
+            && !self.t_min.is_nan()
+    }
+
+    #[inline]
+    pub fn at(&self, t: f32) -> Vec3 {
+        self.origin + self.dir * t
+    }
+}
+
+/// The closest hit along a ray.
+///
+/// `u` and `v` are barycentric coordinates: the hit point is
+/// `(1 - u - v) * v0 + u * v1 + v * v2` of the triangle's vertices.
+/// `normal` is the unnormalised geometric normal `(v1 - v0) x (v2 - v0)` in
+/// world space.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    pub t: f32,
+    pub u: f32,
+    pub v: f32,
+    /// Index of the triangle in its object's index buffer.
+    pub prim_id: u32,
+    /// Object (mesh) id, or [`INVALID_ID`] for a query on a single mesh BVH.
+    pub object_id: u32,
+    /// Instance id, or [`INVALID_ID`] when the object was hit directly.
+    pub instance_id: u32,
+    pub normal: Vec3,
+}
+
+impl Hit {
+    /// A placeholder that any real hit replaces.
+    pub const NONE: Hit = Hit {
+        t: f32::INFINITY,
+        u: 0.0,
+        v: 0.0,
+        prim_id: INVALID_ID,
+        object_id: INVALID_ID,
+        instance_id: INVALID_ID,
+        normal: Vec3::ZERO,
+    };
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn checked_constructor_rejects_bad_rays() {
+        assert!(Ray::new(Vec3::ZERO, Vec3::ZERO, 0.0, 1.0).is_err());
+        assert!(Ray::new(Vec3::NAN, Vec3::X, 0.0, 1.0).is_err());
+        assert!(Ray::new(Vec3::ZERO, Vec3::X, 2.0, 1.0).is_err());
+        assert!(Ray::new(Vec3::ZERO, Vec3::X, -1.0, 1.0).is_err());
+        assert!(Ray::new(Vec3::ZERO, Vec3::X, 0.0, f32::INFINITY).is_ok());
+        assert!(!Ray::infinite(Vec3::ZERO, Vec3::ZERO).is_valid());
+    }
+}

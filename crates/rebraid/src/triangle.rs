@@ -1,0 +1,195 @@
+//! Watertight ray/triangle intersection.
+//!
+//! Implements S. Woop, C. Benthin, I. Wald, "Watertight Ray/Triangle
+//! Intersection", JCGT 2(1), 2013. The ray is sheared and scaled so that it
+//! points along +z from the origin; the triangle's 2D edge functions are then
+//! evaluated in that space. Two triangles sharing an edge evaluate that edge
+//! function from the same two (bit-identical) transformed vertices, so a ray
+//! through the edge sees zero on both sides and hits at least one of them:
+//! no ray slips through a closed mesh. Edge functions that round to exactly
+//! zero are recomputed in `f64`, as the paper recommends, so that rays through
+//! vertices and edges are decided consistently.
+
+use glam::Vec3;
+
+/// Per-ray constants of the watertight test, computed once per ray.
+#[derive(Clone, Copy, Debug)]
+pub struct WatertightRay {
+    pub origin: Vec3,
+    /// Permuted axes: `kz` is the dominant axis of the direction.
+    pub kx: usize,
+    pub ky: usize,
+    pub kz: usize,
+    /// Shear constants.
+    pub sx: f32,
+    pub sy: f32,
+    pub sz: f32,
+}
+
+impl WatertightRay {
+    /// Precompute the shear for a ray. The direction must be non-zero for any
+    /// triangle to be hit; a zero direction yields non-finite constants and
+    /// every test then fails.
+    #[inline]
+    pub fn new(origin: Vec3, dir: Vec3) -> Self {
+        let a = dir.abs();
+        let kz = if a.x >= a.y && a.x >= a.z {
+            0
+        } else if a.y >= a.z {
+            1
+        } else {
+            2
+        };
+        let mut kx = (kz + 1) % 3;
+        let mut ky = (kx + 1) % 3;
+        // Swap to preserve the triangle's winding when the ray points down kz.
+        if dir[kz] < 0.0 {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        Self {
+            origin,
+            kx,
+            ky,
+            kz,
+            sx: dir[kx] / dir[kz],
+            sy: dir[ky] / dir[kz],
+            sz: 1.0 / dir[kz],
+        }
+    }
+}
+
+/// Intersect one triangle. Returns `(t, u, v)` with `t` in `[t_min, t_max]`,
+/// where the hit point is `(1 - u - v) * v0 + u * v1 + v * v2`.
+///
+/// Degenerate triangles (zero determinant) are never hit. Both faces are hit.
+#[inline(always)]
+pub fn intersect_triangle(
+    r: &WatertightRay,
+    v0: Vec3,
+    v1: Vec3,
+    v2: Vec3,
+    t_min: f32,
+    t_max: f32,
+) -> Option<(f32, f32, f32)> {
+    let a = v0 - r.origin;
+    let b = v1 - r.origin;
+    let c = v2 - r.origin;
+    let (kx, ky, kz) = (r.kx, r.ky, r.kz);
+    let ax = a[kx] - r.sx * a[kz];
+    let ay = a[ky] - r.sy * a[kz];
+    let bx = b[kx] - r.sx * b[kz];
+    let by = b[ky] - r.sy * b[kz];
+    let cx = c[kx] - r.sx * c[kz];
+    let cy = c[ky] - r.sy * c[kz];
+
+    let mut u = cx * by - cy * bx;
+    let mut v = ax * cy - ay * cx;
+    let mut w = bx * ay - by * ax;
+    if u == 0.0 || v == 0.0 || w == 0.0 {
+        let (ax, ay, bx, by, cx, cy) = (
+            ax as f64, ay as f64, bx as f64, by as f64, cx as f64, cy as f64,
+        );
+        u = (cx * by - cy * bx) as f32;
+        v = (ax * cy - ay * cx) as f32;
+        w = (bx * ay - by * ax) as f32;
+    }
+    if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
+        return None;
+    }
+    let det = u + v + w;
+    if det == 0.0 {
+        return None;
+    }
+    let az = r.sz * a[kz];
+    let bz = r.sz * b[kz];
+    let cz = r.sz * c[kz];
+    let t_scaled = u * az + v * bz + w * cz;
+    let rcp = 1.0 / det;
+    let t = t_scaled * rcp;
+    // Written so that NaN fails.
+    if !(t >= t_min && t <= t_max) {
+        return None;
+    }
+    Some((t, v * rcp, w * rcp))
+}
+
+/// The unnormalised geometric normal `(v1 - v0) x (v2 - v0)`.
+#[inline]
+pub fn geometric_normal(v0: Vec3, v1: Vec3, v2: Vec3) -> Vec3 {
+    (v1 - v0).cross(v2 - v0)
+}
+
+/// True when the triangle has zero area, judged in `f64` so that nearly
+/// degenerate but valid triangles are kept.
+pub fn is_degenerate(v0: Vec3, v1: Vec3, v2: Vec3) -> bool {
+    let e1 = (v1 - v0).as_dvec3();
+    let e2 = (v2 - v0).as_dvec3();
+    e1.cross(e2) == glam::DVec3::ZERO
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tri() -> [Vec3; 3] {
+        [
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(0.0, 1.0, 0.0),
+        ]
+    }
+
+    #[test]
+    fn hits_inside_and_reports_barycentrics() {
+        let [a, b, c] = tri();
+        let o = Vec3::new(0.25, 0.5, 1.0);
+        let r = WatertightRay::new(o, Vec3::new(0.0, 0.0, -2.0));
+        let (t, u, v) = intersect_triangle(&r, a, b, c, 0.0, f32::INFINITY).unwrap();
+        assert!((t - 0.5).abs() < 1e-6);
+        let p = a * (1.0 - u - v) + b * u + c * v;
+        assert!((p - Vec3::new(0.25, 0.5, 0.0)).length() < 1e-6);
+        // both faces
+        let r = WatertightRay::new(Vec3::new(0.25, 0.25, -1.0), Vec3::Z);
+        assert!(intersect_triangle(&r, a, b, c, 0.0, f32::INFINITY).is_some());
+    }
+
+    #[test]
+    fn misses_outside_and_outside_interval() {
+        let [a, b, c] = tri();
+        let r = WatertightRay::new(Vec3::new(0.75, 0.75, 1.0), -Vec3::Z);
+        assert!(intersect_triangle(&r, a, b, c, 0.0, f32::INFINITY).is_none());
+        let r = WatertightRay::new(Vec3::new(0.25, 0.25, 1.0), -Vec3::Z);
+        assert!(intersect_triangle(&r, a, b, c, 0.0, 0.5).is_none());
+        assert!(intersect_triangle(&r, a, b, c, 1.5, 3.0).is_none());
+    }
+
+    #[test]
+    fn shared_edge_never_slips_through() {
+        // Two triangles sharing the diagonal of the unit square; rays exactly
+        // through the diagonal must hit one of them.
+        let p = [
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(1.0, 1.0, 0.0),
+            Vec3::new(0.0, 1.0, 0.0),
+        ];
+        for i in 0..=64 {
+            let s = i as f32 / 64.0;
+            let r = WatertightRay::new(Vec3::new(s, s, 3.0), Vec3::new(0.0, 0.0, -1.0));
+            let h1 = intersect_triangle(&r, p[0], p[1], p[2], 0.0, f32::INFINITY);
+            let h2 = intersect_triangle(&r, p[0], p[2], p[3], 0.0, f32::INFINITY);
+            assert!(h1.is_some() || h2.is_some(), "slipped through at {s}");
+        }
+    }
+
+    #[test]
+    fn degenerate_never_hit() {
+        let a = Vec3::new(0.0, 0.0, 0.0);
+        let b = Vec3::new(1.0, 1.0, 0.0);
+        let r = WatertightRay::new(Vec3::new(0.5, 0.5, 1.0), -Vec3::Z);
+        assert!(intersect_triangle(&r, a, a, b, 0.0, f32::INFINITY).is_none());
+        assert!(intersect_triangle(&r, a, a, a, 0.0, f32::INFINITY).is_none());
+        assert!(is_degenerate(a, b, b * 2.0));
+        assert!(!is_degenerate(a, b, Vec3::X));
+    }
+}
