@@ -29,13 +29,17 @@
 
 pub mod aabb;
 pub mod bvh;
+pub mod desc;
 pub mod error;
 pub mod mesh;
+pub mod procedural;
 pub mod ray;
+pub mod transform;
 pub mod triangle;
 
 pub use aabb::Aabb;
 pub use bvh::{BuildParams, Bvh, BvhNode, BvhStats};
+pub use desc::{InstanceDesc, ObjectDesc, SceneDesc};
 pub use error::Error;
 pub use mesh::{MeshBvh, TriangleMesh};
 pub use ray::{Hit, INVALID_ID, Ray};

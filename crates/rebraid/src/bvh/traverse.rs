@@ -68,6 +68,29 @@ impl Bvh {
         &self,
         ray: &BoxRay,
         t_min: f32,
+        t_max: f32,
+        counters: &mut TraversalCounters,
+        leaf: F,
+    ) where
+        F: FnMut(&BvhNode, &mut f32) -> bool,
+    {
+        match self.nodes.first() {
+            Some(root) if ray.hit_node(root, t_min, t_max) < f32::INFINITY => {
+                self.traverse_from(0, ray, t_min, t_max, counters, leaf)
+            }
+            _ => {}
+        }
+    }
+
+    /// [`Bvh::traverse`] of the subtree rooted at node `start` (a top-level
+    /// leaf of a re-braided tree enters an object BVH this way). The caller
+    /// has already tested `start`'s box, so it is not tested again.
+    #[inline(always)]
+    pub fn traverse_from<F>(
+        &self,
+        start: u32,
+        ray: &BoxRay,
+        t_min: f32,
         mut t_max: f32,
         counters: &mut TraversalCounters,
         mut leaf: F,
@@ -75,15 +98,12 @@ impl Bvh {
         F: FnMut(&BvhNode, &mut f32) -> bool,
     {
         let nodes = self.nodes.as_slice();
-        let Some(root) = nodes.first() else {
-            return;
-        };
-        if ray.hit_node(root, t_min, t_max) == f32::INFINITY {
+        if start as usize >= nodes.len() {
             return;
         }
         let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
         let mut sp = 0usize;
-        let mut current = 0u32;
+        let mut current = start;
         loop {
             let node = &nodes[current as usize];
             if node.is_leaf() {

@@ -1,0 +1,1 @@
+//! Seeded procedural scenes (the project's own generated data).
