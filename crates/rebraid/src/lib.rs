@@ -34,6 +34,8 @@ pub mod error;
 pub mod mesh;
 pub mod procedural;
 pub mod ray;
+pub mod scene;
+pub mod toplevel;
 pub mod transform;
 pub mod triangle;
 
@@ -43,6 +45,8 @@ pub use desc::{InstanceDesc, ObjectDesc, SceneDesc};
 pub use error::Error;
 pub use mesh::{MeshBvh, TriangleMesh};
 pub use ray::{Hit, INVALID_ID, Ray};
+pub use scene::{AccelMode, CommitReport, InstanceId, ObjectId, Scene, SceneParams, SceneStats};
+pub use toplevel::{RebraidParams, RefBudget};
 
 pub use glam;
 

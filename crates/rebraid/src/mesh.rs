@@ -3,7 +3,9 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::bvh::{BoxRay, BuildParams, Bvh, BvhNode, BvhStats, SahCosts, TraversalCounters, build_bvh};
+use crate::bvh::{
+    BoxRay, BuildParams, Bvh, BvhNode, BvhStats, SahCosts, TraversalCounters, build_bvh,
+};
 use crate::triangle::{WatertightRay, geometric_normal, intersect_triangle, is_degenerate};
 use crate::{Aabb, Error, Hit, INVALID_ID, Ray};
 
@@ -25,7 +27,9 @@ impl TriangleMesh {
     /// A mesh of independent triangles (a "soup").
     pub fn from_triangles(tris: &[[Vec3; 3]]) -> Result<Self, Error> {
         let positions = tris.iter().flatten().copied().collect();
-        let indices = (0..tris.len() as u32).map(|i| [3 * i, 3 * i + 1, 3 * i + 2]).collect();
+        let indices = (0..tris.len() as u32)
+            .map(|i| [3 * i, 3 * i + 1, 3 * i + 2])
+            .collect();
         Self::new(positions, indices)
     }
 
@@ -118,7 +122,11 @@ impl MeshBvh {
             .with_min_len(4096)
             .map(|&p| {
                 let [a, b, c] = mesh.triangle(p as usize);
-                if is_degenerate(a, b, c) { [a, a, a] } else { [a, b, c] }
+                if is_degenerate(a, b, c) {
+                    [a, a, a]
+                } else {
+                    [a, b, c]
+                }
             })
             .collect();
         Ok(Self { bvh, triangles })
@@ -162,7 +170,13 @@ impl MeshBvh {
 
     /// True when some triangle of the leaf is hit within `[t_min, t_max]`.
     #[inline(always)]
-    pub fn occluded_leaf(&self, wray: &WatertightRay, node: &BvhNode, t_min: f32, t_max: f32) -> bool {
+    pub fn occluded_leaf(
+        &self,
+        wray: &WatertightRay,
+        node: &BvhNode,
+        t_min: f32,
+        t_max: f32,
+    ) -> bool {
         node.prim_range().any(|k| {
             let [a, b, c] = self.triangles[k];
             intersect_triangle(wray, a, b, c, t_min, t_max).is_some()
@@ -180,7 +194,7 @@ impl MeshBvh {
             prim_id: self.bvh.prim_indices[k as usize],
             object_id: INVALID_ID,
             instance_id: INVALID_ID,
-            normal: geometric_normal(a, b, c),
+            normal: geometric_normal(a, b, c).normalize_or_zero(),
         }
     }
 
@@ -197,10 +211,11 @@ impl MeshBvh {
         let bray = BoxRay::new(ray.origin, ray.dir);
         let wray = WatertightRay::new(ray.origin, ray.dir);
         let mut best = None;
-        self.bvh.traverse(&bray, ray.t_min, ray.t_max, counters, |node, t_max| {
-            self.intersect_leaf(&wray, node, ray.t_min, t_max, &mut best);
-            false
-        });
+        self.bvh
+            .traverse(&bray, ray.t_min, ray.t_max, counters, |node, t_max| {
+                self.intersect_leaf(&wray, node, ray.t_min, t_max, &mut best);
+                false
+            });
         best.map(|h| self.make_hit(h))
     }
 
@@ -274,7 +289,11 @@ pub fn brute_force_intersect(mesh: &TriangleMesh, ray: &Ray) -> Option<Hit> {
     let mut t_max = ray.t_max;
     for i in 0..mesh.len() {
         let [a, b, c] = mesh.triangle(i);
-        let [a, b, c] = if is_degenerate(a, b, c) { [a, a, a] } else { [a, b, c] };
+        let [a, b, c] = if is_degenerate(a, b, c) {
+            [a, a, a]
+        } else {
+            [a, b, c]
+        };
         if let Some((t, u, v)) = intersect_triangle(&wray, a, b, c, ray.t_min, t_max)
             && best.is_none_or(|h| t < h.t)
         {
@@ -286,7 +305,7 @@ pub fn brute_force_intersect(mesh: &TriangleMesh, ray: &Ray) -> Option<Hit> {
                 prim_id: i as u32,
                 object_id: INVALID_ID,
                 instance_id: INVALID_ID,
-                normal: geometric_normal(a, b, c),
+                normal: geometric_normal(a, b, c).normalize_or_zero(),
             });
         }
     }
@@ -301,6 +320,7 @@ pub fn brute_force_occluded(mesh: &TriangleMesh, ray: &Ray) -> bool {
     let wray = WatertightRay::new(ray.origin, ray.dir);
     (0..mesh.len()).any(|i| {
         let [a, b, c] = mesh.triangle(i);
-        !is_degenerate(a, b, c) && intersect_triangle(&wray, a, b, c, ray.t_min, ray.t_max).is_some()
+        !is_degenerate(a, b, c)
+            && intersect_triangle(&wray, a, b, c, ray.t_min, ray.t_max).is_some()
     })
 }

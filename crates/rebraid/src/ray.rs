@@ -75,8 +75,9 @@ impl Ray {
 ///
 /// `u` and `v` are barycentric coordinates: the hit point is
 /// `(1 - u - v) * v0 + u * v1 + v * v2` of the triangle's vertices.
-/// `normal` is the unnormalised geometric normal `(v1 - v0) x (v2 - v0)` in
-/// world space.
+/// `normal` is the unit geometric normal in world space, oriented by the
+/// triangle's winding as placed in the world: `normalize((v1 - v0) x (v2 - v0))`
+/// of the world-space vertices (for instances, of the transformed vertices).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Hit {
     pub t: f32,

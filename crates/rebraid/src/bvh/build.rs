@@ -72,12 +72,15 @@ impl BuildParams {
             )));
         }
         if self.max_leaf_size == 0 {
-            return Err(Error::InvalidParameter("max_leaf_size must be at least 1".into()));
+            return Err(Error::InvalidParameter(
+                "max_leaf_size must be at least 1".into(),
+            ));
         }
-        if !(self.traversal_cost >= 0.0 && self.intersection_cost > 0.0)
-            || !self.traversal_cost.is_finite()
-            || !self.intersection_cost.is_finite()
-        {
+        let costs_ok = self.traversal_cost >= 0.0
+            && self.intersection_cost > 0.0
+            && self.traversal_cost.is_finite()
+            && self.intersection_cost.is_finite();
+        if !costs_ok {
             return Err(Error::InvalidParameter(
                 "costs must be finite, traversal >= 0 and intersection > 0".into(),
             ));
@@ -128,7 +131,17 @@ pub fn build_bvh(boxes: &[Aabb], centroids: &[Vec3], params: &BuildParams) -> Re
         params,
     };
     let (root_slot, desc) = slots.split_at_mut(1);
-    root_slot[0] = build_node(&ctx, &mut prims, &mut scratch, desc, 0, 1, bounds, cbounds, 1);
+    root_slot[0] = build_node(
+        &ctx,
+        &mut prims,
+        &mut scratch,
+        desc,
+        0,
+        1,
+        bounds,
+        cbounds,
+        1,
+    );
     let nodes = compact(&slots);
     let bvh = Bvh {
         nodes,
@@ -158,13 +171,19 @@ fn range_bounds(boxes: &[Aabb], centroids: &[Vec3]) -> (Aabb, Aabb) {
             .map(|(b, c)| b.iter().zip(c).fold((Aabb::EMPTY, Aabb::EMPTY), fold))
             .reduce(|| (Aabb::EMPTY, Aabb::EMPTY), join)
     } else {
-        boxes.iter().zip(centroids).fold((Aabb::EMPTY, Aabb::EMPTY), fold)
+        boxes
+            .iter()
+            .zip(centroids)
+            .fold((Aabb::EMPTY, Aabb::EMPTY), fold)
     }
 }
 
 fn bounds_of(ctx: &Ctx, prims: &[u32]) -> (Aabb, Aabb) {
     prims.iter().fold((Aabb::EMPTY, Aabb::EMPTY), |(b, c), &p| {
-        (b.union(ctx.boxes[p as usize]), c.grow(ctx.centroids[p as usize]))
+        (
+            b.union(ctx.boxes[p as usize]),
+            c.grow(ctx.centroids[p as usize]),
+        )
     })
 }
 
@@ -190,7 +209,12 @@ fn bin_range(ctx: &Ctx, prims: &[u32], map: &BinMapping) -> Bins {
 
 /// Partition `prims` so that those for which `is_left` holds come first.
 /// Returns the left count and the centroid bounds of both sides.
-fn partition<F>(ctx: &Ctx, prims: &mut [u32], scratch: &mut [u32], is_left: F) -> (usize, Aabb, Aabb)
+fn partition<F>(
+    ctx: &Ctx,
+    prims: &mut [u32],
+    scratch: &mut [u32],
+    is_left: F,
+) -> (usize, Aabb, Aabb)
 where
     F: Fn(Vec3) -> bool + Sync,
 {
@@ -258,9 +282,9 @@ where
         .par_chunks_mut(CHUNK)
         .zip(scratch.par_chunks(CHUNK))
         .for_each(|(d, s)| d.copy_from_slice(s));
-    let (cl, cr) = counts
-        .iter()
-        .fold((Aabb::EMPTY, Aabb::EMPTY), |(a, b), x| (a.union(x.1), b.union(x.2)));
+    let (cl, cr) = counts.iter().fold((Aabb::EMPTY, Aabb::EMPTY), |(a, b), x| {
+        (a.union(x.1), b.union(x.2))
+    });
     (left, cl, cr)
 }
 
@@ -306,8 +330,7 @@ fn build_node(
                 return leaf;
             }
             let axis = s.axis;
-            let (mid, lcb, rcb) =
-                partition(ctx, prims, scratch, |c| map.bin(c, axis) < s.bin);
+            let (mid, lcb, rcb) = partition(ctx, prims, scratch, |c| map.bin(c, axis) < s.bin);
             debug_assert_eq!(mid as u64, s.left_weight);
             (mid, s.left_bounds, lcb, s.right_bounds, rcb)
         }
@@ -322,7 +345,9 @@ fn build_node(
                 let axis = cbounds.largest_axis();
                 let c = ctx.centroids;
                 prims.select_nth_unstable_by(mid, |&a, &b| {
-                    c[a as usize][axis].total_cmp(&c[b as usize][axis]).then(a.cmp(&b))
+                    c[a as usize][axis]
+                        .total_cmp(&c[b as usize][axis])
+                        .then(a.cmp(&b))
                 });
             }
             let (l, r) = prims.split_at(mid);
@@ -342,10 +367,30 @@ fn build_node(
     let left_desc_first = desc_first + 2;
     let right_desc_first = desc_first + 2 * nl as u32;
     let mut build_left = move || {
-        build_node(ctx, lp, ls, left_desc, left_first, left_desc_first, lb, lcb, depth + 1)
+        build_node(
+            ctx,
+            lp,
+            ls,
+            left_desc,
+            left_first,
+            left_desc_first,
+            lb,
+            lcb,
+            depth + 1,
+        )
     };
     let mut build_right = move || {
-        build_node(ctx, rp, rs, right_desc, right_first, right_desc_first, rb, rcb, depth + 1)
+        build_node(
+            ctx,
+            rp,
+            rs,
+            right_desc,
+            right_first,
+            right_desc_first,
+            rb,
+            rcb,
+            depth + 1,
+        )
     };
     let (l, r) = if n > p.parallel_threshold {
         rayon::join(build_left, build_right)

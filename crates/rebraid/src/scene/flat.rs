@@ -1,0 +1,80 @@
+//! The flat acceleration mode: one BVH over every triangle of the scene in
+//! world space (instanced objects' triangles transformed and duplicated).
+//! The quality reference for the two-level modes, and their slow-build,
+//! no-instancing foil.
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::bvh::{BuildParams, TraversalCounters};
+use crate::{Error, Hit, MeshBvh, Ray, TriangleMesh};
+
+/// Where a triangle of the flat BVH came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PrimOrigin {
+    pub object: u32,
+    pub instance: u32,
+    pub prim: u32,
+}
+
+/// One BVH over the whole scene.
+#[derive(Clone, Debug, Default)]
+pub struct FlatAccel {
+    pub bvh: MeshBvh,
+    /// Origin of each world triangle, by flat primitive id.
+    pub origins: Vec<PrimOrigin>,
+}
+
+/// A placement to flatten: the object's mesh, the transform (None for the
+/// identity) and the ids to report.
+pub struct FlatPart<'a> {
+    pub mesh: &'a TriangleMesh,
+    pub transform: Option<glam::Affine3A>,
+    pub object: u32,
+    pub instance: u32,
+}
+
+impl FlatAccel {
+    pub fn build(parts: &[FlatPart], params: &BuildParams) -> Result<Self, Error> {
+        let total_v: usize = parts.iter().map(|p| p.mesh.positions.len()).sum();
+        let total_t: usize = parts.iter().map(|p| p.mesh.len()).sum();
+        let mut positions: Vec<Vec3> = Vec::with_capacity(total_v);
+        let mut indices: Vec<[u32; 3]> = Vec::with_capacity(total_t);
+        let mut origins = Vec::with_capacity(total_t);
+        for p in parts {
+            let base = positions.len() as u32;
+            match p.transform {
+                Some(t) => positions
+                    .par_extend(p.mesh.positions.par_iter().map(|&v| t.transform_point3(v))),
+                None => positions.extend_from_slice(&p.mesh.positions),
+            }
+            indices.extend(p.mesh.indices.iter().map(|t| t.map(|i| i + base)));
+            origins.extend((0..p.mesh.len() as u32).map(|prim| PrimOrigin {
+                object: p.object,
+                instance: p.instance,
+                prim,
+            }));
+        }
+        let mesh = TriangleMesh { positions, indices };
+        let bvh = MeshBvh::build(&mesh, params)?;
+        Ok(Self { bvh, origins })
+    }
+
+    fn map_hit(&self, mut h: Hit) -> Hit {
+        let o = self.origins[h.prim_id as usize];
+        h.prim_id = o.prim;
+        h.object_id = o.object;
+        h.instance_id = o.instance;
+        h
+    }
+
+    pub fn intersect_counted(&self, ray: &Ray, counters: &mut TraversalCounters) -> Option<Hit> {
+        self.bvh
+            .intersect_counted(ray, counters)
+            .map(|h| self.map_hit(h))
+    }
+
+    pub fn occluded(&self, ray: &Ray) -> bool {
+        self.bvh.occluded(ray)
+    }
+}

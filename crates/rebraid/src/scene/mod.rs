@@ -1,0 +1,636 @@
+//! Scenes of many objects and instances, and their acceleration modes.
+//!
+//! A [`Scene`] holds objects (triangle meshes) and instances (an object placed
+//! by an affine transform). An object is either *placed* (it appears in the
+//! world as given) or only a prototype seen through its instances. Edits mark
+//! what changed; [`Scene::commit`] rebuilds the BVHs of changed objects only
+//! (in parallel across objects, and in parallel within a large object), then
+//! the top level, in the [`AccelMode`] the scene is set to. Queries answer
+//! from the last commit; before the first commit they hit nothing.
+
+mod flat;
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use glam::Affine3A;
+use rayon::prelude::*;
+
+use flat::FlatPart;
+pub use flat::{FlatAccel, PrimOrigin};
+
+use crate::bvh::{BuildParams, BvhStats, SahCosts, TraversalCounters};
+use crate::toplevel::builder::RefSources;
+use crate::toplevel::{
+    BuildRef, InstanceXf, ObjectBvh, RebraidParams, TopLevelAccel, TopLevelBuildStats,
+    build_top_level,
+};
+use crate::transform::check_transform;
+use crate::{Error, Hit, INVALID_ID, MeshBvh, Ray, SceneDesc, TriangleMesh};
+
+/// Id of an object of a scene (stable until the object is removed).
+pub type ObjectId = u32;
+/// Id of an instance of a scene (stable until the instance is removed).
+pub type InstanceId = u32;
+
+/// How a committed scene is accelerated. Every mode answers every query the
+/// same way (same closest hit up to exact ties, same occlusion).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum AccelMode {
+    /// One BVH over every world-space triangle: best traversal, slowest
+    /// build, no sharing of instanced geometry.
+    Flat,
+    /// One BVH per object plus a top-level BVH over object and instance boxes.
+    TwoLevel,
+    /// Two-level with partial re-braiding: the top level opens object BVHs
+    /// where they overlap (see [`crate::toplevel::builder`]).
+    #[default]
+    Rebraided,
+}
+
+impl AccelMode {
+    pub const ALL: [AccelMode; 3] = [AccelMode::Flat, AccelMode::TwoLevel, AccelMode::Rebraided];
+
+    /// The name used by the tool and in reports: `flat`, `two-level`, `rebraided`.
+    pub fn name(&self) -> &'static str {
+        match self {
+            AccelMode::Flat => "flat",
+            AccelMode::TwoLevel => "two-level",
+            AccelMode::Rebraided => "rebraided",
+        }
+    }
+}
+
+impl std::str::FromStr for AccelMode {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self, Error> {
+        match s {
+            "flat" => Ok(AccelMode::Flat),
+            "two-level" | "twolevel" | "two_level" => Ok(AccelMode::TwoLevel),
+            "rebraided" | "rebraid" => Ok(AccelMode::Rebraided),
+            _ => Err(Error::InvalidParameter(format!(
+                "unknown mode '{s}' (expected flat, two-level or rebraided)"
+            ))),
+        }
+    }
+}
+
+/// Build parameters of a scene.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SceneParams {
+    pub mode: AccelMode,
+    /// Object BVHs (and the flat BVH).
+    pub object_build: BuildParams,
+    /// Top level of the re-braided mode (the two-level mode uses the same
+    /// parameters with opening off).
+    pub rebraid: RebraidParams,
+}
+
+struct Object {
+    mesh: TriangleMesh,
+    placed: bool,
+    bvh: Option<Arc<ObjectBvh>>,
+    /// The mesh changed since `bvh` was built.
+    dirty: bool,
+}
+
+#[derive(Clone, Copy)]
+struct Instance {
+    object: ObjectId,
+    xf: InstanceXf,
+}
+
+/// The committed acceleration structure.
+#[derive(Clone, Debug, Default)]
+pub enum Accel {
+    /// Nothing committed yet, or an empty scene.
+    #[default]
+    Empty,
+    Flat(FlatAccel),
+    TopLevel(TopLevelAccel),
+}
+
+/// What a commit did and how long each phase took.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CommitReport {
+    pub mode: AccelMode,
+    /// Objects whose BVH was (re)built by this commit.
+    pub objects_rebuilt: Vec<ObjectId>,
+    /// Objects whose BVH from an earlier commit was reused.
+    pub objects_reused: usize,
+    /// Triangles of the rebuilt objects.
+    pub triangles_rebuilt: usize,
+    pub object_build_ms: f64,
+    /// Top-level build (two-level modes) or the whole flat build (flat mode).
+    pub top_build_ms: f64,
+    pub total_ms: f64,
+    /// Top-level statistics (two-level modes).
+    pub top: Option<TopLevelBuildStats>,
+}
+
+/// A scene of objects and instances with a committed acceleration structure.
+#[derive(Default)]
+pub struct Scene {
+    objects: Vec<Option<Object>>,
+    instances: Vec<Option<Instance>>,
+    pub params: SceneParams,
+    accel: Accel,
+    /// Some edit since the last commit.
+    changed: bool,
+}
+
+impl Scene {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    pub fn with_params(params: SceneParams) -> Self {
+        Self {
+            params,
+            ..Self::default()
+        }
+    }
+
+    /// A scene holding everything a description lists (not yet committed).
+    pub fn from_desc(desc: &SceneDesc, params: SceneParams) -> Result<Self, Error> {
+        let mut s = Self::with_params(params);
+        for o in &desc.objects {
+            let id = s.add_object(o.mesh.clone())?;
+            s.set_object_placed(id, o.placed)?;
+        }
+        for i in &desc.instances {
+            s.add_instance(i.object, i.transform)?;
+        }
+        Ok(s)
+    }
+
+    /// Set the mode the next commit builds.
+    pub fn set_mode(&mut self, mode: AccelMode) {
+        if self.params.mode != mode {
+            self.params.mode = mode;
+            self.changed = true;
+        }
+    }
+
+    pub fn mode(&self) -> AccelMode {
+        self.params.mode
+    }
+
+    /// Add a mesh that appears in the world as given. Its id is returned.
+    pub fn add_object(&mut self, mesh: TriangleMesh) -> Result<ObjectId, Error> {
+        mesh.validate()?;
+        if self.objects.len() >= INVALID_ID as usize {
+            return Err(Error::TooManyPrimitives(self.objects.len()));
+        }
+        self.objects.push(Some(Object {
+            mesh,
+            placed: true,
+            bvh: None,
+            dirty: true,
+        }));
+        self.changed = true;
+        Ok(self.objects.len() as u32 - 1)
+    }
+
+    /// Add a mesh seen only through its instances (a prototype).
+    pub fn add_prototype(&mut self, mesh: TriangleMesh) -> Result<ObjectId, Error> {
+        let id = self.add_object(mesh)?;
+        self.set_object_placed(id, false)?;
+        Ok(id)
+    }
+
+    fn object_mut(&mut self, id: ObjectId) -> Result<&mut Object, Error> {
+        self.objects
+            .get_mut(id as usize)
+            .and_then(|o| o.as_mut())
+            .ok_or(Error::UnknownObject(id))
+    }
+
+    fn object(&self, id: ObjectId) -> Result<&Object, Error> {
+        self.objects
+            .get(id as usize)
+            .and_then(|o| o.as_ref())
+            .ok_or(Error::UnknownObject(id))
+    }
+
+    /// Whether the object appears in the world itself (besides its instances).
+    pub fn set_object_placed(&mut self, id: ObjectId, placed: bool) -> Result<(), Error> {
+        let o = self.object_mut(id)?;
+        if o.placed != placed {
+            o.placed = placed;
+            self.changed = true;
+        }
+        Ok(())
+    }
+
+    /// The object's mesh.
+    pub fn mesh(&self, id: ObjectId) -> Result<&TriangleMesh, Error> {
+        Ok(&self.object(id)?.mesh)
+    }
+
+    /// Replace the object's mesh (topology may change); rebuilt at commit.
+    pub fn set_mesh(&mut self, id: ObjectId, mesh: TriangleMesh) -> Result<(), Error> {
+        mesh.validate()?;
+        let o = self.object_mut(id)?;
+        o.mesh = mesh;
+        o.dirty = true;
+        self.changed = true;
+        Ok(())
+    }
+
+    /// Move the object's vertices (same count, same triangles); rebuilt at commit.
+    pub fn set_vertices(&mut self, id: ObjectId, positions: &[glam::Vec3]) -> Result<(), Error> {
+        let o = self.object_mut(id)?;
+        if positions.len() != o.mesh.positions.len() {
+            return Err(Error::VertexCountMismatch {
+                expected: o.mesh.positions.len(),
+                got: positions.len(),
+            });
+        }
+        if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
+            return Err(Error::NonFiniteVertex {
+                index: i,
+                value: positions[i].to_array(),
+            });
+        }
+        o.mesh.positions.copy_from_slice(positions);
+        o.dirty = true;
+        self.changed = true;
+        Ok(())
+    }
+
+    /// Remove an object and every instance of it. Returns the removed instances.
+    pub fn remove_object(&mut self, id: ObjectId) -> Result<Vec<InstanceId>, Error> {
+        self.object(id)?;
+        self.objects[id as usize] = None;
+        let mut removed = Vec::new();
+        for (i, inst) in self.instances.iter_mut().enumerate() {
+            if inst.is_some_and(|x| x.object == id) {
+                *inst = None;
+                removed.push(i as u32);
+            }
+        }
+        self.changed = true;
+        Ok(removed)
+    }
+
+    /// Place an object by an affine object-to-world transform (non-uniform
+    /// scale allowed; singular or non-finite transforms are rejected).
+    pub fn add_instance(
+        &mut self,
+        object: ObjectId,
+        transform: Affine3A,
+    ) -> Result<InstanceId, Error> {
+        self.object(object)?;
+        check_transform(&transform)?;
+        if self.instances.len() >= INVALID_ID as usize {
+            return Err(Error::TooManyPrimitives(self.instances.len()));
+        }
+        self.instances.push(Some(Instance {
+            object,
+            xf: InstanceXf::new(transform),
+        }));
+        self.changed = true;
+        Ok(self.instances.len() as u32 - 1)
+    }
+
+    pub fn set_instance_transform(
+        &mut self,
+        id: InstanceId,
+        transform: Affine3A,
+    ) -> Result<(), Error> {
+        check_transform(&transform)?;
+        let inst = self
+            .instances
+            .get_mut(id as usize)
+            .and_then(|i| i.as_mut())
+            .ok_or(Error::UnknownInstance(id))?;
+        inst.xf = InstanceXf::new(transform);
+        self.changed = true;
+        Ok(())
+    }
+
+    pub fn instance_transform(&self, id: InstanceId) -> Result<Affine3A, Error> {
+        self.instances
+            .get(id as usize)
+            .and_then(|i| i.as_ref())
+            .map(|i| i.xf.object_to_world)
+            .ok_or(Error::UnknownInstance(id))
+    }
+
+    pub fn remove_instance(&mut self, id: InstanceId) -> Result<(), Error> {
+        let slot = self
+            .instances
+            .get_mut(id as usize)
+            .filter(|i| i.is_some())
+            .ok_or(Error::UnknownInstance(id))?;
+        *slot = None;
+        self.changed = true;
+        Ok(())
+    }
+
+    /// Ids of live objects.
+    pub fn object_ids(&self) -> impl Iterator<Item = ObjectId> + '_ {
+        self.objects
+            .iter()
+            .enumerate()
+            .filter(|(_, o)| o.is_some())
+            .map(|(i, _)| i as u32)
+    }
+
+    /// Live instances as (id, object, transform).
+    pub fn instances(&self) -> impl Iterator<Item = (InstanceId, ObjectId, Affine3A)> + '_ {
+        self.instances
+            .iter()
+            .enumerate()
+            .filter_map(|(i, x)| x.map(|x| (i as u32, x.object, x.xf.object_to_world)))
+    }
+
+    pub fn object_count(&self) -> usize {
+        self.objects.iter().flatten().count()
+    }
+
+    pub fn instance_count(&self) -> usize {
+        self.instances.iter().flatten().count()
+    }
+
+    /// Triangles in the world: placed objects plus one copy per instance.
+    pub fn world_triangles(&self) -> usize {
+        let placed: usize = self
+            .objects
+            .iter()
+            .flatten()
+            .filter(|o| o.placed)
+            .map(|o| o.mesh.len())
+            .sum();
+        let inst: usize = self
+            .instances
+            .iter()
+            .flatten()
+            .map(|i| {
+                self.objects[i.object as usize]
+                    .as_ref()
+                    .map_or(0, |o| o.mesh.len())
+            })
+            .sum();
+        placed + inst
+    }
+
+    /// True when there are edits the last commit does not include.
+    pub fn needs_commit(&self) -> bool {
+        self.changed || self.objects.iter().flatten().any(|o| o.dirty)
+    }
+
+    /// The committed acceleration structure.
+    pub fn accel(&self) -> &Accel {
+        &self.accel
+    }
+
+    /// Bring the acceleration structure up to date with every edit.
+    pub fn commit(&mut self) -> Result<CommitReport, Error> {
+        let start = Instant::now();
+        self.params.object_build.check()?;
+        self.params.rebraid.check()?;
+        let mode = self.params.mode;
+        let mut report = CommitReport {
+            mode,
+            ..Default::default()
+        };
+        if mode == AccelMode::Flat {
+            let t = Instant::now();
+            let mut parts = Vec::new();
+            for (id, o) in self.objects.iter().enumerate() {
+                if let Some(o) = o
+                    && o.placed
+                {
+                    parts.push(FlatPart {
+                        mesh: &o.mesh,
+                        transform: None,
+                        object: id as u32,
+                        instance: INVALID_ID,
+                    });
+                }
+            }
+            for (id, inst) in self.instances.iter().enumerate() {
+                if let Some(inst) = inst
+                    && let Some(o) = &self.objects[inst.object as usize]
+                {
+                    parts.push(FlatPart {
+                        mesh: &o.mesh,
+                        transform: Some(inst.xf.object_to_world),
+                        object: inst.object,
+                        instance: id as u32,
+                    });
+                }
+            }
+            let flat = FlatAccel::build(&parts, &self.params.object_build)?;
+            report.top_build_ms = t.elapsed().as_secs_f64() * 1e3;
+            self.accel = if flat.bvh.is_empty() {
+                Accel::Empty
+            } else {
+                Accel::Flat(flat)
+            };
+        } else {
+            // Object BVHs of changed objects, in parallel across objects.
+            let t = Instant::now();
+            let todo: Vec<usize> = self
+                .objects
+                .iter()
+                .enumerate()
+                .filter(|(_, o)| o.as_ref().is_some_and(|o| o.dirty || o.bvh.is_none()))
+                .map(|(i, _)| i)
+                .collect();
+            let params = &self.params.object_build;
+            let built: Vec<(usize, Result<MeshBvh, Error>)> = todo
+                .par_iter()
+                .map(|&i| {
+                    let o = self.objects[i].as_ref().expect("listed above");
+                    (i, MeshBvh::build(&o.mesh, params))
+                })
+                .collect();
+            for (i, r) in built {
+                let o = self.objects[i].as_mut().expect("listed above");
+                report.triangles_rebuilt += o.mesh.len();
+                o.bvh = Some(Arc::new(ObjectBvh::new(r?)));
+                o.dirty = false;
+                report.objects_rebuilt.push(i as u32);
+            }
+            report.objects_reused = self.object_count() - report.objects_rebuilt.len();
+            report.object_build_ms = t.elapsed().as_secs_f64() * 1e3;
+
+            let t = Instant::now();
+            let top = self.build_top(mode)?;
+            report.top_build_ms = t.elapsed().as_secs_f64() * 1e3;
+            report.top = Some(top.build_stats.clone());
+            self.accel = if top.tree.is_empty() {
+                Accel::Empty
+            } else {
+                Accel::TopLevel(top)
+            };
+        }
+        self.changed = false;
+        report.total_ms = start.elapsed().as_secs_f64() * 1e3;
+        Ok(report)
+    }
+
+    /// Initial refs (object roots and instance roots) and the top-level build.
+    fn build_top(&self, mode: AccelMode) -> Result<TopLevelAccel, Error> {
+        let objects: Vec<Option<Arc<ObjectBvh>>> = self
+            .objects
+            .iter()
+            .map(|o| {
+                o.as_ref()
+                    .and_then(|o| o.bvh.clone())
+                    .filter(|b| !b.mesh.is_empty())
+            })
+            .collect();
+        let instances: Vec<InstanceXf> = self
+            .instances
+            .iter()
+            .map(|i| i.map_or(InstanceXf::new(Affine3A::IDENTITY), |i| i.xf))
+            .collect();
+        let mut refs = Vec::new();
+        for (id, o) in self.objects.iter().enumerate() {
+            if let (Some(o), Some(bvh)) = (o, &objects[id])
+                && o.placed
+            {
+                refs.push(BuildRef {
+                    bounds: bvh.mesh.bvh.bounds(),
+                    object: id as u32,
+                    node: 0,
+                    instance: INVALID_ID,
+                    prims: bvh.mesh.len() as u32,
+                });
+            }
+        }
+        for (id, inst) in self.instances.iter().enumerate() {
+            if let Some(inst) = inst
+                && let Some(bvh) = &objects[inst.object as usize]
+            {
+                refs.push(BuildRef {
+                    bounds: inst.xf.world_box(&bvh.mesh.bvh.bounds()),
+                    object: inst.object,
+                    node: 0,
+                    instance: id as u32,
+                    prims: bvh.mesh.len() as u32,
+                });
+            }
+        }
+        let params = match mode {
+            AccelMode::Rebraided => self.params.rebraid.clone(),
+            _ => RebraidParams {
+                open: false,
+                ..self.params.rebraid.clone()
+            },
+        };
+        let src = RefSources {
+            objects: &objects,
+            instances: &instances,
+        };
+        let (tree, top_refs, build_stats) = build_top_level(&refs, src, &params)?;
+        let accel = TopLevelAccel {
+            tree,
+            refs: top_refs,
+            objects,
+            instances,
+            build_stats,
+        };
+        #[cfg(debug_assertions)]
+        if let Err(e) = accel.validate() {
+            panic!("top-level builder produced an invalid tree: {e}");
+        }
+        Ok(accel)
+    }
+
+    /// Closest hit along the ray (no hit before the first commit).
+    pub fn intersect(&self, ray: &Ray) -> Option<Hit> {
+        self.intersect_counted(ray, &mut TraversalCounters::default())
+    }
+
+    /// Closest hit, counting the nodes visited (for heat maps).
+    pub fn intersect_counted(&self, ray: &Ray, counters: &mut TraversalCounters) -> Option<Hit> {
+        match &self.accel {
+            Accel::Empty => None,
+            Accel::Flat(f) => f.intersect_counted(ray, counters),
+            Accel::TopLevel(t) => t.intersect_counted(ray, counters),
+        }
+    }
+
+    /// True when anything is hit within the ray's interval.
+    pub fn occluded(&self, ray: &Ray) -> bool {
+        match &self.accel {
+            Accel::Empty => false,
+            Accel::Flat(f) => f.occluded(ray),
+            Accel::TopLevel(t) => t.occluded(ray),
+        }
+    }
+
+    /// Closest hits of many rays, in parallel.
+    pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
+        assert_eq!(rays.len(), out.len(), "one output per ray");
+        out.par_iter_mut()
+            .zip(rays.par_iter())
+            .with_min_len(256)
+            .for_each(|(o, r)| *o = self.intersect(r));
+    }
+
+    /// Occlusion of many rays, in parallel.
+    pub fn occluded_batch(&self, rays: &[Ray], out: &mut [bool]) {
+        assert_eq!(rays.len(), out.len(), "one output per ray");
+        out.par_iter_mut()
+            .zip(rays.par_iter())
+            .with_min_len(256)
+            .for_each(|(o, r)| *o = self.occluded(r));
+    }
+
+    /// Statistics of the committed structure.
+    pub fn stats(&self) -> SceneStats {
+        let mut s = SceneStats {
+            mode: self.params.mode,
+            objects: self.object_count(),
+            instances: self.instance_count(),
+            world_triangles: self.world_triangles(),
+            ..Default::default()
+        };
+        match &self.accel {
+            Accel::Empty => {}
+            Accel::Flat(f) => {
+                let st = f.bvh.stats();
+                s.sah_cost = st.sah_cost;
+                s.bytes = st.bytes + std::mem::size_of_val(f.origins.as_slice());
+                s.flat = Some(st);
+            }
+            Accel::TopLevel(t) => {
+                s.sah_cost = t.sah_cost(SahCosts::default());
+                let object_bytes: usize = t
+                    .objects
+                    .iter()
+                    .flatten()
+                    .map(|o| {
+                        o.mesh.stats().bytes + std::mem::size_of_val(o.subtree_prims.as_slice())
+                    })
+                    .sum();
+                s.bytes = object_bytes + t.top_bytes();
+                s.top_nodes = t.tree.nodes.len();
+                s.top = Some(t.build_stats.clone());
+            }
+        }
+        s
+    }
+}
+
+/// Statistics of a committed scene.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SceneStats {
+    pub mode: AccelMode,
+    pub objects: usize,
+    pub instances: usize,
+    pub world_triangles: usize,
+    /// SAH cost of the tree as traversed (see `rebraiding.md`).
+    pub sah_cost: f64,
+    /// Bytes of every node, index and triangle array of the structure.
+    pub bytes: usize,
+    pub top_nodes: usize,
+    pub top: Option<TopLevelBuildStats>,
+    pub flat: Option<BvhStats>,
+}

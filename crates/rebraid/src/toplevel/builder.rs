@@ -1,0 +1,590 @@
+//! The top-level builder with partial re-braiding.
+//!
+//! C. Benthin, S. Woop, I. Wald, A. Áfra, "Improved Two-Level BVHs using
+//! Partial Re-Braiding", HPG 2017 (see `shared/docs/rebraiding.md`). The build
+//! is a top-down binned SAH build over *build refs*, each a reference to an
+//! object-BVH node. At every step, before partitioning a list, refs that are
+//! large relative to the list (extent along the list's longest axis above
+//! `threshold` times the list's extent) are *opened*: replaced by their two
+//! children, one level per step. Deeper levels open in later steps, when the
+//! shrinking lists make the remaining refs large relative to them.
+//!
+//! Memory: the ref array is allocated once with spare slots (Embree's sizing
+//! by default). A list owns `list.len()` array slots, its refs first; after a
+//! split the spare slots are divided in proportion to the two sides' ref
+//! counts and the array is rearranged to `[left | left spare | right | right
+//! spare]`. Top-level node slots follow the array: a list covering array
+//! positions `b..e` owns node slots `2b+1 .. 2e-1` for its descendants, so the
+//! recursion never allocates and the tree does not depend on the thread count.
+//!
+//! Departures from Embree's shipped builder, each a fix of a limitation
+//! measured in `shared/docs/anchors.md`:
+//! - opening is not all-or-nothing: when the marked refs do not all fit in the
+//!   list's spare slots, the largest ones (by extent along the split axis) are
+//!   opened, so a tight budget degrades gracefully instead of opening nothing;
+//! - the pairwise-overlap test of short lists checks every pair;
+//! - refs may carry an instance transform and be opened through it
+//!   ([`RebraidParams::open_instances`]): the children's world boxes are their
+//!   transformed object-space boxes.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use rayon::prelude::*;
+
+use super::{InstanceXf, ObjectBvh, TopRef};
+use crate::bvh::binning::{BinMapping, Bins, MAX_BINS};
+use crate::bvh::{Bvh, BvhNode, MEDIAN_FROM_DEPTH};
+use crate::{Aabb, Error, INVALID_ID};
+
+/// How many ref slots the build may use in all.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RefBudget {
+    /// `max(min, per_initial_ref * initial refs, per_primitive * primitives)`,
+    /// and never below the initial refs. Embree uses `(1000, 2.0, 0.001)`.
+    Scaled {
+        min: usize,
+        per_initial_ref: f32,
+        per_primitive: f32,
+    },
+    /// Exactly this many slots beyond the initial refs.
+    Spare(usize),
+}
+
+impl RefBudget {
+    /// Total capacity of the ref array for a build.
+    pub fn capacity(&self, initial_refs: usize, primitives: u64) -> usize {
+        match *self {
+            RefBudget::Scaled {
+                min,
+                per_initial_ref,
+                per_primitive,
+            } => {
+                let a = (per_initial_ref as f64 * initial_refs as f64).ceil() as usize;
+                let b = (per_primitive as f64 * primitives as f64).ceil() as usize;
+                min.max(a).max(b).max(initial_refs)
+            }
+            RefBudget::Spare(s) => initial_refs + s,
+        }
+    }
+}
+
+/// Parameters of the top-level build.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RebraidParams {
+    /// Open object BVHs at all. `false` gives the plain two-level BVH.
+    pub open: bool,
+    /// Also open refs that carry an instance transform (Embree never does).
+    pub open_instances: bool,
+    /// A ref is opened when its extent along the list's longest axis exceeds
+    /// this fraction of the list's extent (the paper's 10%).
+    pub threshold: f32,
+    pub budget: RefBudget,
+    /// SAH bins per axis.
+    pub bins: usize,
+    /// Lists of at most this many refs are opened only when two of their
+    /// refs overlap (Embree: 4).
+    pub short_list: usize,
+    /// Lists longer than this are opened, binned and partitioned with
+    /// data-parallel loops, and their halves built as parallel tasks.
+    pub parallel_threshold: usize,
+}
+
+impl Default for RebraidParams {
+    fn default() -> Self {
+        Self {
+            open: true,
+            open_instances: true,
+            threshold: 0.1,
+            budget: RefBudget::Scaled {
+                min: 1000,
+                per_initial_ref: 2.0,
+                per_primitive: 0.001,
+            },
+            bins: 32,
+            short_list: 4,
+            parallel_threshold: 1024,
+        }
+    }
+}
+
+impl RebraidParams {
+    /// The plain two-level BVH: no opening.
+    pub fn two_level() -> Self {
+        Self {
+            open: false,
+            ..Self::default()
+        }
+    }
+
+    pub fn check(&self) -> Result<(), Error> {
+        if !(2..=MAX_BINS).contains(&self.bins) {
+            return Err(Error::InvalidParameter(format!(
+                "bins must be in 2..={MAX_BINS}"
+            )));
+        }
+        if !(self.threshold >= 0.0 && self.threshold.is_finite()) {
+            return Err(Error::InvalidParameter(
+                "threshold must be finite and >= 0".into(),
+            ));
+        }
+        if let RefBudget::Scaled {
+            per_initial_ref,
+            per_primitive,
+            ..
+        } = self.budget
+            && !(per_initial_ref >= 0.0 && per_primitive >= 0.0)
+        {
+            return Err(Error::InvalidParameter(
+                "budget factors must be >= 0".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// A reference to an object-BVH node during the top-level build.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C)]
+pub struct BuildRef {
+    /// World-space bounds of the node (transformed for instances).
+    pub bounds: Aabb,
+    pub object: u32,
+    pub node: u32,
+    /// Instance id, or [`INVALID_ID`] for an object placed directly.
+    pub instance: u32,
+    /// Primitives under the node; the SAH weight of the ref.
+    pub prims: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<BuildRef>() == 40);
+
+/// What a top-level build did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TopLevelBuildStats {
+    pub refs_initial: usize,
+    pub refs_final: usize,
+    /// Object-BVH nodes replaced by their children.
+    pub nodes_opened: usize,
+    /// Size of the ref array (initial refs plus spare slots).
+    pub capacity: usize,
+    pub top_nodes: usize,
+    pub build_ms: f64,
+}
+
+/// Object BVHs and instance transforms the refs point into.
+#[derive(Clone, Copy)]
+pub struct RefSources<'a> {
+    pub objects: &'a [Option<std::sync::Arc<ObjectBvh>>],
+    pub instances: &'a [InstanceXf],
+}
+
+struct Ctx<'a> {
+    src: RefSources<'a>,
+    params: &'a RebraidParams,
+    opened: AtomicU64,
+}
+
+/// Chunk length of data-parallel loops (a constant: thread-count independence).
+const CHUNK: usize = 512;
+
+/// Build the top level over `initial` refs (each an object-BVH node, usually
+/// a root). Returns the tree (leaves of exactly one ref, indexing the returned
+/// refs) and statistics.
+pub fn build_top_level(
+    initial: &[BuildRef],
+    src: RefSources,
+    params: &RebraidParams,
+) -> Result<(Bvh, Vec<TopRef>, TopLevelBuildStats), Error> {
+    params.check()?;
+    let start = std::time::Instant::now();
+    let n = initial.len();
+    for (i, r) in initial.iter().enumerate() {
+        let ok = src
+            .objects
+            .get(r.object as usize)
+            .and_then(|o| o.as_deref())
+            .is_some_and(|o| (r.node as usize) < o.nodes().len())
+            && (r.instance == INVALID_ID || (r.instance as usize) < src.instances.len())
+            && r.bounds.is_finite()
+            && !r.bounds.is_empty();
+        if !ok {
+            return Err(Error::InvalidBounds { index: i });
+        }
+    }
+    if n == 0 {
+        return Ok((Bvh::default(), Vec::new(), TopLevelBuildStats::default()));
+    }
+    let prims: u64 = initial.iter().map(|r| r.prims as u64).sum();
+    let capacity = if params.open {
+        params.budget.capacity(n, prims)
+    } else {
+        n
+    };
+    if capacity >= (1usize << 31) {
+        return Err(Error::TooManyPrimitives(capacity));
+    }
+    // The only allocations of the build: ref array, scratch, node slots.
+    let mut refs = vec![initial[0]; capacity];
+    refs[..n].copy_from_slice(initial);
+    let mut scratch = vec![initial[0]; capacity];
+    let mut slots = vec![bytemuck::Zeroable::zeroed(); 2 * capacity - 1];
+    let ctx = Ctx {
+        src,
+        params,
+        opened: AtomicU64::new(0),
+    };
+    let (root, desc) = slots.split_at_mut(1);
+    root[0] = build_list(&ctx, &mut refs, &mut scratch, n, desc, 1, 0, 1);
+
+    // Compact the slots into depth-first order, refs into leaf order.
+    let mut nodes: Vec<BvhNode> = Vec::with_capacity(2 * capacity);
+    let mut out_refs: Vec<TopRef> = Vec::with_capacity(capacity);
+    nodes.push(slots[0]);
+    let mut stack = vec![0usize];
+    while let Some(i) = stack.pop() {
+        let node = nodes[i];
+        if node.is_leaf() {
+            let first = out_refs.len() as u32;
+            for r in &refs[node.prim_range()] {
+                out_refs.push(TopRef {
+                    object: r.object,
+                    node: r.node,
+                    instance: r.instance,
+                    prims: r.prims,
+                });
+            }
+            nodes[i].index = first;
+            continue;
+        }
+        let old = node.index as usize;
+        let new = nodes.len();
+        nodes.push(slots[old]);
+        nodes.push(slots[old + 1]);
+        nodes[i].index = new as u32;
+        stack.push(new + 1);
+        stack.push(new);
+    }
+    let stats = TopLevelBuildStats {
+        refs_initial: n,
+        refs_final: out_refs.len(),
+        nodes_opened: ctx.opened.load(Ordering::Relaxed) as usize,
+        capacity,
+        top_nodes: nodes.len(),
+        build_ms: start.elapsed().as_secs_f64() * 1e3,
+    };
+    let tree = Bvh {
+        nodes,
+        prim_indices: Vec::new(),
+    };
+    Ok((tree, out_refs, stats))
+}
+
+fn list_bounds(list: &[BuildRef], parallel: bool) -> (Aabb, Aabb) {
+    let fold = |(b, c): (Aabb, Aabb), r: &BuildRef| (b.union(r.bounds), c.grow(r.bounds.center()));
+    if parallel {
+        list.par_chunks(CHUNK)
+            .map(|ch| ch.iter().fold((Aabb::EMPTY, Aabb::EMPTY), fold))
+            .reduce(
+                || (Aabb::EMPTY, Aabb::EMPTY),
+                |(a, b), (c, d)| (a.union(c), b.union(d)),
+            )
+    } else {
+        list.iter().fold((Aabb::EMPTY, Aabb::EMPTY), fold)
+    }
+}
+
+/// Does this list still benefit from opening? (The paper's termination rules.)
+fn may_open(ctx: &Ctx, list: &[BuildRef], spare: usize) -> bool {
+    if spare == 0 {
+        return false;
+    }
+    let first = (list[0].object, list[0].instance);
+    if list.iter().all(|r| (r.object, r.instance) == first) {
+        return false;
+    }
+    if list.len() <= ctx.params.short_list {
+        // Open only if some pair shares an area or volume (touching at an
+        // edge or corner is no overlap).
+        for i in 0..list.len() {
+            for j in i + 1..list.len() {
+                if list[i].bounds.intersection(list[j].bounds).half_area() > 0.0
+                    && !list[i].bounds.intersection(list[j].bounds).is_empty()
+                {
+                    return true;
+                }
+            }
+        }
+        return false;
+    }
+    true
+}
+
+#[inline]
+fn openable(ctx: &Ctx, r: &BuildRef) -> bool {
+    if r.instance != INVALID_ID && !ctx.params.open_instances {
+        return false;
+    }
+    ctx.src.objects[r.object as usize]
+        .as_deref()
+        .is_some_and(|o| !o.nodes()[r.node as usize].is_leaf())
+}
+
+/// The two children of an opened ref.
+#[inline]
+fn children(ctx: &Ctx, r: &BuildRef) -> [BuildRef; 2] {
+    let obj = ctx.src.objects[r.object as usize]
+        .as_deref()
+        .expect("validated");
+    let nodes = obj.nodes();
+    let c = nodes[r.node as usize].index;
+    let xf = (r.instance != INVALID_ID).then(|| &ctx.src.instances[r.instance as usize]);
+    let make = |i: u32| {
+        let local = nodes[i as usize].bounds();
+        BuildRef {
+            // Clip to the parent's world box: the transformed child box lies
+            // inside it up to rounding, and clipping keeps the top-level
+            // nodes nested exactly.
+            bounds: xf.map_or(local, |xf| xf.world_box(&local).intersection(r.bounds)),
+            object: r.object,
+            node: i,
+            instance: r.instance,
+            prims: obj.subtree_prims[i as usize],
+        }
+    };
+    [make(c), make(c + 1)]
+}
+
+/// Open the refs of `list[..n]` that are large relative to `bounds`, writing
+/// new refs into the spare slots `list[n..]`. Returns the new ref count.
+fn open_refs(ctx: &Ctx, list: &mut [BuildRef], n: usize, bounds: &Aabb) -> usize {
+    let axis = bounds.largest_axis();
+    let limit = ctx.params.threshold * bounds.extent()[axis];
+    let marked = |r: &BuildRef| r.bounds.extent()[axis] > limit && openable(ctx, r);
+    // Marked refs to the front.
+    let (mut m, mut j) = (0, n);
+    while m < j {
+        if marked(&list[m]) {
+            m += 1;
+        } else {
+            j -= 1;
+            list.swap(m, j);
+        }
+    }
+    let spare = list.len() - n;
+    let k = if m > spare {
+        // Not all fit: open the largest.
+        list[..m].select_nth_unstable_by(spare, |a, b| {
+            b.bounds.extent()[axis].total_cmp(&a.bounds.extent()[axis])
+        });
+        spare
+    } else {
+        m
+    };
+    if k == 0 {
+        return n;
+    }
+    let (head, tail) = list.split_at_mut(n);
+    let open_one = |(r, extra): (&mut BuildRef, &mut BuildRef)| {
+        let [a, b] = children(ctx, r);
+        *r = a;
+        *extra = b;
+    };
+    if k > ctx.params.parallel_threshold {
+        head[..k]
+            .par_iter_mut()
+            .zip(tail[..k].par_iter_mut())
+            .with_min_len(CHUNK)
+            .for_each(open_one);
+    } else {
+        head[..k]
+            .iter_mut()
+            .zip(tail[..k].iter_mut())
+            .for_each(open_one);
+    }
+    ctx.opened.fetch_add(k as u64, Ordering::Relaxed);
+    n + k
+}
+
+fn bin_list(list: &[BuildRef], map: &BinMapping, parallel: bool) -> Bins {
+    let bin_chunk = |chunk: &[BuildRef]| {
+        let mut bins = Bins::default();
+        for r in chunk {
+            bins.add(map, &r.bounds, r.bounds.center(), r.prims.max(1) as u64);
+        }
+        bins
+    };
+    if parallel {
+        let parts: Vec<Bins> = list.par_chunks(CHUNK * 4).map(bin_chunk).collect();
+        let mut all = Bins::default();
+        for p in &parts {
+            all.merge(p, map.bins);
+        }
+        all
+    } else {
+        bin_chunk(list)
+    }
+}
+
+/// Partition `list` so that refs for which `is_left` holds come first;
+/// stable through `scratch` when parallel. Returns the left count.
+fn partition_refs<F>(
+    list: &mut [BuildRef],
+    scratch: &mut [BuildRef],
+    parallel: bool,
+    is_left: F,
+) -> usize
+where
+    F: Fn(&BuildRef) -> bool + Sync,
+{
+    if !parallel {
+        let (mut i, mut j) = (0, list.len());
+        while i < j {
+            if is_left(&list[i]) {
+                i += 1;
+            } else {
+                j -= 1;
+                list.swap(i, j);
+            }
+        }
+        return i;
+    }
+    let counts: Vec<usize> = list
+        .par_chunks(CHUNK)
+        .map(|c| c.iter().filter(|r| is_left(r)).count())
+        .collect();
+    let left: usize = counts.iter().sum();
+    let (mut rest_l, mut rest_r) = scratch[..list.len()].split_at_mut(left);
+    let mut dests = Vec::with_capacity(counts.len());
+    for (k, &nl) in counts.iter().enumerate() {
+        let len = CHUNK.min(list.len() - k * CHUNK);
+        let (a, tl) = std::mem::take(&mut rest_l).split_at_mut(nl);
+        let (b, tr) = std::mem::take(&mut rest_r).split_at_mut(len - nl);
+        rest_l = tl;
+        rest_r = tr;
+        dests.push((a, b));
+    }
+    list.par_chunks(CHUNK)
+        .zip(dests.into_par_iter())
+        .for_each(|(chunk, (dl, dr))| {
+            let (mut i, mut j) = (0, 0);
+            for r in chunk {
+                if is_left(r) {
+                    dl[i] = *r;
+                    i += 1;
+                } else {
+                    dr[j] = *r;
+                    j += 1;
+                }
+            }
+        });
+    let n = list.len();
+    list.copy_from_slice(&scratch[..n]);
+    left
+}
+
+/// Build the subtree over the `n` refs at the front of `list` (`list.len()`
+/// slots in all, the rest spare). `list[0]` is array position `first`; the
+/// subtree's descendants go to `desc`, whose first slot is `desc_first`.
+#[allow(clippy::too_many_arguments)]
+fn build_list(
+    ctx: &Ctx,
+    list: &mut [BuildRef],
+    scratch: &mut [BuildRef],
+    n: usize,
+    desc: &mut [BvhNode],
+    desc_first: u32,
+    first: u32,
+    depth: u32,
+) -> BvhNode {
+    let parallel = n > ctx.params.parallel_threshold;
+    let (mut bounds, mut cbounds) = list_bounds(&list[..n], parallel);
+    if n == 1 {
+        return BvhNode::leaf(bounds, first, 1);
+    }
+    let mut n = n;
+    if ctx.params.open && depth < MEDIAN_FROM_DEPTH && may_open(ctx, &list[..n], list.len() - n) {
+        let opened = open_refs(ctx, list, n, &bounds);
+        if opened != n {
+            n = opened;
+            (bounds, cbounds) = list_bounds(&list[..n], n > ctx.params.parallel_threshold);
+        }
+    }
+    let parallel = n > ctx.params.parallel_threshold;
+
+    // Binned SAH weighted by the refs' primitive counts; median split when
+    // the centroids coincide or the tree grows too deep.
+    let split = (depth < MEDIAN_FROM_DEPTH && cbounds.extent().max_element() > 0.0)
+        .then(|| {
+            let map = BinMapping::new(&cbounds, ctx.params.bins);
+            bin_list(&list[..n], &map, parallel)
+                .best_split(&map)
+                .map(|s| (map, s))
+        })
+        .flatten();
+    let nl = match split {
+        Some((map, s)) => partition_refs(&mut list[..n], &mut scratch[..n], parallel, |r| {
+            map.bin(r.bounds.center(), s.axis) < s.bin
+        }),
+        None => {
+            let mid = n / 2;
+            if cbounds.extent().max_element() > 0.0 {
+                let axis = cbounds.largest_axis();
+                list[..n].select_nth_unstable_by(mid, |a, b| {
+                    a.bounds.center()[axis]
+                        .total_cmp(&b.bounds.center()[axis])
+                        .then((a.object, a.instance, a.node).cmp(&(b.object, b.instance, b.node)))
+                });
+            }
+            mid
+        }
+    };
+    debug_assert!(nl > 0 && nl < n);
+
+    // Divide the spare slots in proportion to the sides' ref counts:
+    // [left | left spare | right | right spare].
+    let spare = list.len() - n;
+    let left_spare = (spare as u64 * nl as u64 / n as u64) as usize;
+    list.copy_within(nl..n, nl + left_spare);
+    let left_len = nl + left_spare;
+
+    let (pair, rest) = desc.split_at_mut(2);
+    let (left_desc, right_desc) = rest.split_at_mut(2 * left_len - 2);
+    let (left_list, right_list) = list.split_at_mut(left_len);
+    let (left_scratch, right_scratch) = scratch.split_at_mut(left_len);
+    let nr = n - nl;
+    let right_first = first + left_len as u32;
+    let left_desc_first = desc_first + 2;
+    let right_desc_first = desc_first + 2 * left_len as u32;
+    let mut build_left = move || {
+        build_list(
+            ctx,
+            left_list,
+            left_scratch,
+            nl,
+            left_desc,
+            left_desc_first,
+            first,
+            depth + 1,
+        )
+    };
+    let mut build_right = move || {
+        build_list(
+            ctx,
+            right_list,
+            right_scratch,
+            nr,
+            right_desc,
+            right_desc_first,
+            right_first,
+            depth + 1,
+        )
+    };
+    let (l, r) = if n > 64 || parallel {
+        rayon::join(build_left, build_right)
+    } else {
+        (build_left(), build_right())
+    };
+    pair[0] = l;
+    pair[1] = r;
+    BvhNode::inner(bounds, desc_first)
+}

@@ -1,0 +1,386 @@
+//! The top level of a two-level BVH: a BVH over references to object-BVH
+//! subtrees, possibly through instance transforms.
+//!
+//! One structure serves both the plain two-level BVH (every reference is an
+//! object root) and the re-braided one (references reach into the object
+//! BVHs, see [`builder`]): a top-level leaf holds [`TopRef`]s, and traversal
+//! continues from the leaf into the referenced object subtree, transforming
+//! the ray into the instance's space first when the reference carries an
+//! instance. The object BVHs are shared (`Arc`), never copied or modified.
+
+pub mod builder;
+
+use std::sync::Arc;
+
+use glam::Affine3A;
+use rayon::prelude::*;
+
+use crate::bvh::{BoxRay, Bvh, BvhNode, SahCosts, TraversalCounters};
+use crate::transform::{transform_box, transform_normal};
+use crate::triangle::WatertightRay;
+use crate::{Aabb, Hit, INVALID_ID, MeshBvh, Ray};
+
+pub use builder::{BuildRef, RebraidParams, RefBudget, TopLevelBuildStats, build_top_level};
+
+/// An object's BVH with what the top-level builder needs besides: the number
+/// of primitives under each node (the real counts the SAH weights refs by).
+#[derive(Clone, Debug, Default)]
+pub struct ObjectBvh {
+    pub mesh: MeshBvh,
+    /// Primitives under each node, indexed like `mesh.bvh.nodes`.
+    pub subtree_prims: Vec<u32>,
+}
+
+impl ObjectBvh {
+    pub fn new(mesh: MeshBvh) -> Self {
+        let nodes = &mesh.bvh.nodes;
+        let mut counts = vec![0u32; nodes.len()];
+        // Children are stored after their parent, so a reverse sweep sees
+        // both children before the parent.
+        for i in (0..nodes.len()).rev() {
+            let n = &nodes[i];
+            counts[i] = if n.is_leaf() {
+                n.count
+            } else {
+                counts[n.index as usize] + counts[n.index as usize + 1]
+            };
+        }
+        Self {
+            mesh,
+            subtree_prims: counts,
+        }
+    }
+
+    #[inline]
+    pub fn nodes(&self) -> &[BvhNode] {
+        &self.mesh.bvh.nodes
+    }
+}
+
+/// A top-level leaf entry: object-BVH node `node` of object `object`, placed
+/// by instance `instance` (or directly when [`INVALID_ID`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct TopRef {
+    pub object: u32,
+    pub node: u32,
+    pub instance: u32,
+    /// Primitives under the node.
+    pub prims: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<TopRef>() == 16);
+
+/// An instance's transforms as traversal needs them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct InstanceXf {
+    pub object_to_world: Affine3A,
+    pub world_to_object: Affine3A,
+    /// Sign of the determinant: a mirroring transform flips the winding.
+    pub det_sign: f32,
+}
+
+impl InstanceXf {
+    pub fn new(object_to_world: Affine3A) -> Self {
+        Self {
+            object_to_world,
+            world_to_object: object_to_world.inverse(),
+            det_sign: object_to_world.matrix3.determinant().signum(),
+        }
+    }
+
+    /// World box of an object-space box.
+    #[inline]
+    pub fn world_box(&self, local: &Aabb) -> Aabb {
+        transform_box(&self.object_to_world, local)
+    }
+}
+
+/// A committed two-level (or re-braided) acceleration structure.
+#[derive(Clone, Debug, Default)]
+pub struct TopLevelAccel {
+    /// The top-level tree; leaves index into `refs`.
+    pub tree: Bvh,
+    pub refs: Vec<TopRef>,
+    /// Object BVHs by object id (`None` for removed or empty objects).
+    pub objects: Vec<Option<Arc<ObjectBvh>>>,
+    /// Instance transforms by instance id.
+    pub instances: Vec<InstanceXf>,
+    pub build_stats: TopLevelBuildStats,
+}
+
+/// The best hit so far inside a top-level traversal: (t, u, v, leaf-order
+/// triangle index within its object, ref index).
+type RefHit = (f32, f32, f32, u32, u32);
+
+impl TopLevelAccel {
+    #[inline(always)]
+    fn object(&self, r: &TopRef) -> Option<&ObjectBvh> {
+        self.objects
+            .get(r.object as usize)
+            .and_then(|o| o.as_deref())
+    }
+
+    /// Closest hit along the ray.
+    pub fn intersect(&self, ray: &Ray) -> Option<Hit> {
+        self.intersect_counted(ray, &mut TraversalCounters::default())
+    }
+
+    /// Closest hit, counting visited nodes of both levels.
+    pub fn intersect_counted(&self, ray: &Ray, counters: &mut TraversalCounters) -> Option<Hit> {
+        if !ray.is_valid() {
+            return None;
+        }
+        let bray = BoxRay::new(ray.origin, ray.dir);
+        let wray = WatertightRay::new(ray.origin, ray.dir);
+        let t_min = ray.t_min;
+        let mut best: Option<RefHit> = None;
+        // Leaf-level hits of the object being traversed: (t, u, v, k).
+        let mut obj_best: Option<(f32, f32, f32, u32)> = None;
+        // Ray transformed into the last instance's space, reused while
+        // consecutive refs share the instance.
+        let mut cached: Option<(u32, BoxRay, WatertightRay)> = None;
+        let tree = &self.tree;
+        let mut inner_counters = TraversalCounters::default();
+        tree.traverse(&bray, t_min, ray.t_max, counters, |leaf, t_max| {
+            for ri in leaf.prim_range() {
+                let r = &self.refs[ri];
+                let Some(obj) = self.object(r) else { continue };
+                let (lb, lw) = if r.instance == INVALID_ID {
+                    (bray, wray)
+                } else {
+                    match cached {
+                        Some((id, b, w)) if id == r.instance => (b, w),
+                        _ => {
+                            let xf = &self.instances[r.instance as usize];
+                            let o = xf.world_to_object.transform_point3(ray.origin);
+                            let d = xf.world_to_object.transform_vector3(ray.dir);
+                            let v = (BoxRay::new(o, d), WatertightRay::new(o, d));
+                            cached = Some((r.instance, v.0, v.1));
+                            v
+                        }
+                    }
+                };
+                obj_best = None;
+                obj.mesh.bvh.traverse_from(
+                    r.node,
+                    &lb,
+                    t_min,
+                    *t_max,
+                    &mut inner_counters,
+                    |node, tm| {
+                        obj.mesh.intersect_leaf(&lw, node, t_min, tm, &mut obj_best);
+                        false
+                    },
+                );
+                if let Some((t, u, v, k)) = obj_best
+                    && best.is_none_or(|b| t < b.0)
+                {
+                    *t_max = t;
+                    best = Some((t, u, v, k, ri as u32));
+                }
+            }
+            false
+        });
+        counters.inner_visited += inner_counters.inner_visited;
+        counters.leaves_visited += inner_counters.leaves_visited;
+        best.map(|h| self.make_hit(h))
+    }
+
+    fn make_hit(&self, (t, u, v, k, ri): RefHit) -> Hit {
+        let r = &self.refs[ri as usize];
+        let obj = self.object(r).expect("hit refs have objects");
+        let mut hit = obj.mesh.make_hit((t, u, v, k));
+        hit.object_id = r.object;
+        if r.instance != INVALID_ID {
+            let xf = &self.instances[r.instance as usize];
+            hit.instance_id = r.instance;
+            hit.normal = (transform_normal(&xf.world_to_object, hit.normal) * xf.det_sign)
+                .normalize_or_zero();
+        }
+        hit
+    }
+
+    /// True when anything is hit within the ray's interval.
+    pub fn occluded(&self, ray: &Ray) -> bool {
+        if !ray.is_valid() {
+            return false;
+        }
+        let bray = BoxRay::new(ray.origin, ray.dir);
+        let wray = WatertightRay::new(ray.origin, ray.dir);
+        let t_min = ray.t_min;
+        let mut hit = false;
+        let mut counters = TraversalCounters::default();
+        let mut inner = TraversalCounters::default();
+        self.tree
+            .traverse(&bray, t_min, ray.t_max, &mut counters, |leaf, t_max| {
+                for ri in leaf.prim_range() {
+                    let r = &self.refs[ri];
+                    let Some(obj) = self.object(r) else { continue };
+                    let (lb, lw) = if r.instance == INVALID_ID {
+                        (bray, wray)
+                    } else {
+                        let xf = &self.instances[r.instance as usize];
+                        let o = xf.world_to_object.transform_point3(ray.origin);
+                        let d = xf.world_to_object.transform_vector3(ray.dir);
+                        (BoxRay::new(o, d), WatertightRay::new(o, d))
+                    };
+                    obj.mesh.bvh.traverse_from(
+                        r.node,
+                        &lb,
+                        t_min,
+                        *t_max,
+                        &mut inner,
+                        |node, tm| {
+                            hit = obj.mesh.occluded_leaf(&lw, node, t_min, *tm);
+                            hit
+                        },
+                    );
+                    if hit {
+                        return true;
+                    }
+                }
+                false
+            });
+        hit
+    }
+
+    /// The SAH statistic of the tree as traversed: from the top-level root
+    /// down into the shared object nodes (world-space boxes; a ref's node is
+    /// counted once, as the top-level leaf that tests its box).
+    pub fn sah_cost(&self, costs: SahCosts) -> f64 {
+        let Some(root) = self.tree.nodes.first() else {
+            return 0.0;
+        };
+        let root_area = root.bounds().half_area() as f64;
+        if root_area <= 0.0 {
+            return 0.0;
+        }
+        let (ct, ci) = (costs.traversal as f64, costs.intersection as f64);
+        let top: f64 = self
+            .tree
+            .nodes
+            .iter()
+            .filter(|n| !n.is_leaf())
+            .map(|n| n.bounds().half_area() as f64 * ct)
+            .sum();
+        let braided: f64 = self
+            .tree
+            .nodes
+            .par_iter()
+            .filter(|n| n.is_leaf())
+            .map(|leaf| {
+                let mut s = 0.0;
+                for r in &self.refs[leaf.prim_range()] {
+                    let Some(obj) = self.object(r) else { continue };
+                    let xf =
+                        (r.instance != INVALID_ID).then(|| &self.instances[r.instance as usize]);
+                    let area = |n: &BvhNode| match xf {
+                        Some(xf) => xf.world_box(&n.bounds()).half_area() as f64,
+                        None => n.bounds().half_area() as f64,
+                    };
+                    let nodes = obj.nodes();
+                    let start = &nodes[r.node as usize];
+                    let a = leaf.bounds().half_area() as f64;
+                    if start.is_leaf() {
+                        s += a * start.count as f64 * ci;
+                        continue;
+                    }
+                    s += a * ct;
+                    let mut stack = vec![start.index as usize, start.index as usize + 1];
+                    while let Some(i) = stack.pop() {
+                        let n = &nodes[i];
+                        if n.is_leaf() {
+                            s += area(n) * n.count as f64 * ci;
+                        } else {
+                            s += area(n) * ct;
+                            stack.push(n.index as usize);
+                            stack.push(n.index as usize + 1);
+                        }
+                    }
+                }
+                s
+            })
+            .sum();
+        (top + braided) / root_area
+    }
+
+    /// How often each primitive of each placement is reachable: walks every
+    /// top-level leaf into its object subtree. Keys are (object, instance).
+    pub fn reachable_counts(&self) -> std::collections::HashMap<(u32, u32), Vec<u32>> {
+        let mut counts: std::collections::HashMap<(u32, u32), Vec<u32>> = Default::default();
+        for leaf in self.tree.nodes.iter().filter(|n| n.is_leaf()) {
+            for r in &self.refs[leaf.prim_range()] {
+                let Some(obj) = self.object(r) else { continue };
+                let c = counts
+                    .entry((r.object, r.instance))
+                    .or_insert_with(|| vec![0; obj.mesh.len()]);
+                let nodes = obj.nodes();
+                let mut stack = vec![r.node as usize];
+                while let Some(i) = stack.pop() {
+                    let n = &nodes[i];
+                    if n.is_leaf() {
+                        for k in n.prim_range() {
+                            c[obj.mesh.bvh.prim_indices[k] as usize] += 1;
+                        }
+                    } else {
+                        stack.push(n.index as usize);
+                        stack.push(n.index as usize + 1);
+                    }
+                }
+            }
+        }
+        counts
+    }
+
+    /// Check the top-level tree: child boxes inside parents, each ref's world
+    /// box inside its leaf, each object node's world box inside its ref's box.
+    pub fn validate(&self) -> Result<(), String> {
+        // Direct refs: the node's box. Instanced refs: the box of the
+        // transformed vertices under the node (the builder clips transformed
+        // boxes to their parents', so the geometry is what must be inside).
+        let boxes: Vec<Aabb> = self
+            .refs
+            .par_iter()
+            .map(|r| match self.object(r) {
+                Some(obj) if r.instance == INVALID_ID => obj.nodes()[r.node as usize].bounds(),
+                Some(obj) => {
+                    let xf = &self.instances[r.instance as usize];
+                    let nodes = obj.nodes();
+                    let mut b = Aabb::EMPTY;
+                    let mut stack = vec![r.node as usize];
+                    while let Some(i) = stack.pop() {
+                        let n = &nodes[i];
+                        if n.is_leaf() {
+                            for t in &obj.mesh.triangles[n.prim_range()] {
+                                for v in t {
+                                    b = b.grow(xf.object_to_world.transform_point3(*v));
+                                }
+                            }
+                        } else {
+                            stack.push(n.index as usize);
+                            stack.push(n.index as usize + 1);
+                        }
+                    }
+                    b
+                }
+                None => Aabb::EMPTY,
+            })
+            .collect();
+        // Leaves hold refs in order, so the ref array is the primitive order.
+        let tree = Bvh {
+            nodes: self.tree.nodes.clone(),
+            prim_indices: (0..self.refs.len() as u32).collect(),
+        };
+        if let Some(i) = boxes.iter().position(|b| b.is_empty()) {
+            return Err(format!("ref {i} has no object"));
+        }
+        tree.validate(&boxes)
+    }
+
+    /// Bytes of the top-level tree and refs (object BVHs not included).
+    pub fn top_bytes(&self) -> usize {
+        std::mem::size_of_val(self.tree.nodes.as_slice())
+            + std::mem::size_of_val(self.refs.as_slice())
+    }
+}
