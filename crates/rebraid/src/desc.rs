@@ -34,11 +34,20 @@ pub struct SceneDesc {
 impl SceneDesc {
     /// Triangles in the world: placed objects plus one copy per instance.
     pub fn world_triangles(&self) -> usize {
-        let placed: usize = self.objects.iter().filter(|o| o.placed).map(|o| o.mesh.len()).sum();
+        let placed: usize = self
+            .objects
+            .iter()
+            .filter(|o| o.placed)
+            .map(|o| o.mesh.len())
+            .sum();
         let inst: usize = self
             .instances
             .iter()
-            .map(|i| self.objects.get(i.object as usize).map_or(0, |o| o.mesh.len()))
+            .map(|i| {
+                self.objects
+                    .get(i.object as usize)
+                    .map_or(0, |o| o.mesh.len())
+            })
             .sum();
         placed + inst
     }

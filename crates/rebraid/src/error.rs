@@ -7,7 +7,9 @@ use thiserror::Error;
 pub enum Error {
     #[error("vertex {index} has a non-finite coordinate ({value:?})")]
     NonFiniteVertex { index: usize, value: [f32; 3] },
-    #[error("triangle {triangle} references vertex {vertex}, but there are only {vertex_count} vertices")]
+    #[error(
+        "triangle {triangle} references vertex {vertex}, but there are only {vertex_count} vertices"
+    )]
     IndexOutOfRange {
         triangle: usize,
         vertex: u32,

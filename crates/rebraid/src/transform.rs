@@ -15,7 +15,9 @@ pub fn check_transform(t: &Affine3A) -> Result<(), Error> {
     let m = t.matrix3;
     let scale = m.x_axis.length() * m.y_axis.length() * m.z_axis.length();
     if det == 0.0 || !det.is_finite() || scale == 0.0 || (det.abs() / scale) < 1.0e-6 {
-        return Err(Error::InvalidTransform("singular (zero scale or collapsed axes)"));
+        return Err(Error::InvalidTransform(
+            "singular (zero scale or collapsed axes)",
+        ));
     }
     if !t.inverse().is_finite() {
         return Err(Error::InvalidTransform("inverse is not finite"));
@@ -54,7 +56,9 @@ mod tests {
     #[test]
     fn rejects_singular_and_nan() {
         assert!(check_transform(&Affine3A::from_scale(Vec3::new(1.0, 0.0, 1.0))).is_err());
-        assert!(check_transform(&Affine3A::from_translation(Vec3::new(f32::NAN, 0.0, 0.0))).is_err());
+        assert!(
+            check_transform(&Affine3A::from_translation(Vec3::new(f32::NAN, 0.0, 0.0))).is_err()
+        );
         assert!(check_transform(&Affine3A::from_scale(Vec3::new(2.0, 0.5, 3.0))).is_ok());
     }
 

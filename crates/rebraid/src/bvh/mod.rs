@@ -30,11 +30,14 @@ impl Bvh {
 
     /// Bounds of the whole tree (empty for an empty tree).
     pub fn bounds(&self) -> crate::Aabb {
-        self.nodes.first().map_or(crate::Aabb::EMPTY, |n| n.bounds())
+        self.nodes
+            .first()
+            .map_or(crate::Aabb::EMPTY, |n| n.bounds())
     }
 
     /// Bytes of the node and index arrays.
     pub fn bytes(&self) -> usize {
-        std::mem::size_of_val(self.nodes.as_slice()) + std::mem::size_of_val(self.prim_indices.as_slice())
+        std::mem::size_of_val(self.nodes.as_slice())
+            + std::mem::size_of_val(self.prim_indices.as_slice())
     }
 }

@@ -65,7 +65,11 @@ impl Bvh {
                 stack.push((n.index as usize + 1, d + 1));
             }
         }
-        s.sah_cost = if root_area > 0.0 { sum / root_area } else { 0.0 };
+        s.sah_cost = if root_area > 0.0 {
+            sum / root_area
+        } else {
+            0.0
+        };
         s
     }
 }

@@ -40,7 +40,11 @@ impl BoxRay {
         let t0 = (Vec3::from_array(node.min) - self.origin) * self.inv_dir;
         let t1 = (Vec3::from_array(node.max) - self.origin) * self.inv_dir;
         // f32::min/max return the non-NaN operand.
-        let near = t0.x.min(t1.x).max(t0.y.min(t1.y)).max(t0.z.min(t1.z)).max(t_min);
+        let near =
+            t0.x.min(t1.x)
+                .max(t0.y.min(t1.y))
+                .max(t0.z.min(t1.z))
+                .max(t_min);
         let far = t0.x.max(t1.x).min(t0.y.max(t1.y)).min(t0.z.max(t1.z)) * ROBUST_FAR;
         let far = far.min(t_max);
         if near <= far { near } else { f32::INFINITY }
