@@ -1,0 +1,313 @@
+//! Every acceleration mode of a scene against a world-space brute force:
+//! random multi-object scenes with instances (rotations, shears,
+//! non-uniform and mirroring scales), the heavy-overlap "library" case, and
+//! normals. Issue "Scenes of many objects".
+
+mod scene_common;
+
+use rebraid::glam::{Affine3A, Vec3};
+use rebraid::scene::Accel;
+use rebraid::{AccelMode, Hit, INVALID_ID, Ray, Scene, SceneParams, TriangleMesh};
+use scene_common::*;
+
+fn params(mode: AccelMode) -> SceneParams {
+    SceneParams {
+        mode,
+        ..Default::default()
+    }
+}
+
+/// Build the model's scene in every mode and check each against the brute
+/// force (flat mode bit-exactly, the two-level modes up to instance rounding).
+fn all_modes_vs_brute(model: &Model, rays: &[Ray], what: &str) {
+    let world = model.world();
+    let mut scene = model.to_scene(params(AccelMode::Flat));
+    for mode in AccelMode::ALL {
+        scene.set_mode(mode);
+        let rep = scene.commit().unwrap();
+        assert_eq!(rep.mode, mode);
+        if mode != AccelMode::Flat {
+            check_top(top(&scene), model, &format!("{what} {mode:?}"));
+        } else {
+            assert!(matches!(scene.accel(), Accel::Flat(_)));
+        }
+        let exact = mode == AccelMode::Flat || model.instances.is_empty();
+        let tally = check_scene(&scene, &world, rays, exact, &format!("{what} {mode:?}"));
+        // The rays must actually test something.
+        assert!(tally.hits * 4 >= rays.len(), "{what} {mode:?}: {tally:?}");
+        eprintln!("{what} {mode:?}: {tally:?}");
+    }
+}
+
+#[test]
+fn random_instanced_scenes_match_brute_force_in_every_mode() {
+    let shapes = [
+        Gen::default(),
+        Gen {
+            clustered: 10,
+            scattered: 0,
+            grids: 2,
+            prototypes: 3,
+            instances: 25,
+            tris: 80,
+            mirror: true,
+        },
+        Gen {
+            clustered: 3,
+            scattered: 1,
+            grids: 0,
+            prototypes: 1,
+            instances: 8,
+            tris: 200,
+            mirror: false,
+        },
+        // Instances only (no placed objects).
+        Gen {
+            clustered: 0,
+            scattered: 0,
+            grids: 0,
+            prototypes: 3,
+            instances: 20,
+            tris: 120,
+            mirror: true,
+        },
+    ];
+    for (seed, g) in shapes.iter().enumerate() {
+        let mut rng = rng(100 + seed as u64);
+        let model = random_model(&mut rng, g);
+        let world = model.world();
+        let rays = random_rays(&mut rng, &world, 1500, SCENE_LO, SCENE_HI);
+        all_modes_vs_brute(&model, &rays, &format!("seed {seed}"));
+    }
+}
+
+#[test]
+fn objects_without_instances_are_bit_identical_across_modes() {
+    let mut rng = rng(7);
+    let model = random_model(
+        &mut rng,
+        &Gen {
+            prototypes: 0,
+            instances: 0,
+            clustered: 8,
+            scattered: 2,
+            grids: 2,
+            ..Gen::default()
+        },
+    );
+    let world = model.world();
+    let rays = random_rays(&mut rng, &world, 2000, SCENE_LO, SCENE_HI);
+    let mut scene = model.to_scene(params(AccelMode::Flat));
+    let mut answers: Vec<Vec<Option<Hit>>> = Vec::new();
+    for mode in AccelMode::ALL {
+        scene.set_mode(mode);
+        scene.commit().unwrap();
+        let mut hits = vec![None; rays.len()];
+        scene.intersect_batch(&rays, &mut hits);
+        check_scene(&scene, &world, &rays, true, &format!("{mode:?}"));
+        answers.push(hits);
+    }
+    for (m, hits) in answers.iter().enumerate().skip(1) {
+        for (i, (a, b)) in answers[0].iter().zip(hits).enumerate() {
+            // Same t bit for bit; a different triangle only on an exact tie.
+            assert_eq!(a.map(|h| h.t), b.map(|h| h.t), "mode {m} ray {i}");
+            if let (Some(a), Some(b)) = (a, b)
+                && (a.object_id, a.prim_id) != (b.object_id, b.prim_id)
+            {
+                let all = world.all_hits(&rays[i]);
+                assert!(
+                    all.iter()
+                        .any(|h| (h.object, h.prim) == (b.object_id, b.prim_id) && h.t == a.t),
+                    "mode {m} ray {i}: {a:?} vs {b:?} is no tie"
+                );
+            }
+        }
+    }
+}
+
+/// The library incident: every object's triangles are scattered over the
+/// whole scene box, so every object box is the scene box.
+fn library_model(seed: u64, objects: usize, tris: usize, instances: usize) -> Model {
+    let mut rng = rng(seed);
+    let mut m = Model::default();
+    for i in 0..objects as u32 {
+        let mesh = soup(&mut rng, tris, SCENE_LO, SCENE_HI, 0.7);
+        m.objects.insert(i, (mesh, true));
+    }
+    if instances > 0 {
+        // A scattered prototype, placed by instances that each span the
+        // scene (rotated, scaled about the scene's centre).
+        let proto = objects as u32;
+        let h = (SCENE_HI - SCENE_LO) * 0.5;
+        m.objects
+            .insert(proto, (soup(&mut rng, tris, -h, h, 0.7), false));
+        for i in 0..instances as u32 {
+            let xf = random_transform(&mut rng, SCENE_LO + h - 1.0, SCENE_LO + h + 1.0, true);
+            m.instances.insert(i, (proto, xf));
+        }
+    }
+    m
+}
+
+#[test]
+fn heavy_overlap_rebraided_matches_flat_and_brute_force() {
+    // Without instances: bit-identical answers.
+    let model = library_model(11, 24, 250, 0);
+    let world = model.world();
+    let mut rng = rng(12);
+    let rays = random_rays(&mut rng, &world, 2000, SCENE_LO, SCENE_HI);
+    let mut scene = model.to_scene(params(AccelMode::Flat));
+    scene.commit().unwrap();
+    let mut flat = vec![None; rays.len()];
+    scene.intersect_batch(&rays, &mut flat);
+    scene.set_mode(AccelMode::Rebraided);
+    let rep = scene.commit().unwrap();
+    let st = rep.top.clone().unwrap();
+    assert!(
+        st.nodes_opened > 0,
+        "the library scene must be re-braided: {st:?}"
+    );
+    check_top(top(&scene), &model, "library");
+    check_scene(&scene, &world, &rays, true, "library rebraided");
+    for (i, r) in rays.iter().enumerate() {
+        let h = scene.intersect(r);
+        assert_eq!(h.map(|h| h.t), flat[i].map(|h| h.t), "ray {i}");
+        if h != flat[i] {
+            // Only an exact tie may pick another triangle.
+            let (a, b) = (h.unwrap(), flat[i].unwrap());
+            let all = world.all_hits(r);
+            assert!(
+                all.iter()
+                    .any(|x| (x.object, x.prim) == (a.object_id, a.prim_id) && x.t == b.t),
+                "ray {i}: {a:?} vs flat {b:?}"
+            );
+        }
+    }
+
+    // With scattered instances.
+    let model = library_model(13, 12, 200, 10);
+    let world = model.world();
+    let rays = random_rays(&mut rng, &world, 1500, SCENE_LO, SCENE_HI);
+    all_modes_vs_brute(&model, &rays, "library+instances");
+}
+
+#[test]
+fn mirrored_instance_normals_follow_world_winding() {
+    // One triangle facing +z in object space, in the plane z = 1.
+    let tri = TriangleMesh::from_triangles(&[[
+        Vec3::new(0.0, 0.0, 1.0),
+        Vec3::new(1.0, 0.0, 1.0),
+        Vec3::new(0.0, 1.0, 1.0),
+    ]])
+    .unwrap();
+    let cases = [
+        (Affine3A::IDENTITY, Vec3::Z),
+        // Mirror in x: the winding flips, so does the normal.
+        (Affine3A::from_scale(Vec3::new(-1.0, 1.0, 1.0)), -Vec3::Z),
+        // Mirror in z: the plane moves to z = -1, its winding seen from +z
+        // is unchanged, so is the normal.
+        (Affine3A::from_scale(Vec3::new(1.0, 1.0, -1.0)), Vec3::Z),
+        // Mirror in x and z.
+        (Affine3A::from_scale(Vec3::new(-1.0, 1.0, -2.0)), -Vec3::Z),
+        // Non-uniform scale keeps the orientation.
+        (Affine3A::from_scale(Vec3::new(3.0, 0.5, 2.0)), Vec3::Z),
+        // Shear: the normal is the world cross product, not the transformed normal.
+        (
+            Affine3A::from_cols_array(&[
+                1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.8, 0.0, 1.0, 0.0, 0.0, 0.0,
+            ]),
+            Vec3::Z,
+        ),
+        (
+            Affine3A::from_cols_array(&[
+                1.0, 0.0, 0.5, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0,
+            ]),
+            Vec3::new(-0.5, 0.0, 1.0).normalize(),
+        ),
+    ];
+    for mode in AccelMode::ALL {
+        for (k, (xf, want)) in cases.iter().enumerate() {
+            let mut s = Scene::with_params(params(mode));
+            let p = s.add_prototype(tri.clone()).unwrap();
+            let inst = s.add_instance(p, *xf).unwrap();
+            s.commit().unwrap();
+            let target = xf.transform_point3(Vec3::new(0.25, 0.25, 1.0));
+            for from in [
+                target + Vec3::new(0.1, 0.2, 3.0),
+                target - Vec3::new(0.1, -0.2, 3.0),
+            ] {
+                let ray = Ray::infinite(from, target - from);
+                let h = s
+                    .intersect(&ray)
+                    .unwrap_or_else(|| panic!("{mode:?} case {k}: no hit"));
+                assert_eq!((h.object_id, h.instance_id, h.prim_id), (p, inst, 0));
+                assert!((h.t - 1.0).abs() < 1e-5, "{mode:?} case {k}: t {}", h.t);
+                assert!(
+                    (h.normal - *want).length() < 1e-5,
+                    "{mode:?} case {k}: normal {:?}, want {want:?}",
+                    h.normal
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn directly_placed_hits_have_no_instance_id() {
+    let mut rng = rng(21);
+    let model = random_model(&mut rng, &Gen::default());
+    let world = model.world();
+    let rays = random_rays(&mut rng, &world, 800, SCENE_LO, SCENE_HI);
+    let mut scene = model.to_scene(params(AccelMode::Rebraided));
+    scene.commit().unwrap();
+    let mut seen = (0, 0);
+    for r in &rays {
+        if let Some(h) = scene.intersect(r) {
+            let (_, placed) = &model.objects[&h.object_id];
+            if h.instance_id == INVALID_ID {
+                assert!(placed, "{h:?}: a prototype hit without an instance");
+                seen.0 += 1;
+            } else {
+                assert_eq!(model.instances[&h.instance_id].0, h.object_id, "{h:?}");
+                seen.1 += 1;
+            }
+        }
+    }
+    assert!(seen.0 > 0 && seen.1 > 0, "{seen:?}");
+}
+
+#[test]
+fn invalid_rays_hit_nothing_in_every_mode() {
+    let mut rng = rng(5);
+    let model = random_model(&mut rng, &Gen::default());
+    let mut scene = model.to_scene(params(AccelMode::Flat));
+    let c = (SCENE_LO + SCENE_HI) * 0.5;
+    let bad = [
+        Ray::infinite(c, Vec3::ZERO),
+        Ray::infinite(c, Vec3::new(f32::NAN, 1.0, 0.0)),
+        Ray::infinite(Vec3::new(f32::INFINITY, 0.0, 0.0), Vec3::X),
+        Ray {
+            origin: c,
+            dir: Vec3::X,
+            t_min: 5.0,
+            t_max: 1.0,
+        },
+        Ray {
+            origin: c,
+            dir: Vec3::X,
+            t_min: f32::NAN,
+            t_max: 1.0,
+        },
+    ];
+    for mode in AccelMode::ALL {
+        scene.set_mode(mode);
+        scene.commit().unwrap();
+        for r in &bad {
+            assert_eq!(scene.intersect(r), None, "{mode:?} {r:?}");
+            assert!(!scene.occluded(r), "{mode:?} {r:?}");
+        }
+        let mut out = vec![Some(Hit::NONE); bad.len()];
+        scene.intersect_batch(&bad, &mut out);
+        assert!(out.iter().all(|h| h.is_none()));
+    }
+}
