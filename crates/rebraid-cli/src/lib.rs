@@ -1,2 +1,13 @@
-//! The app layer of rebraid: scene loaders, the built-in procedural scenes,
-//! the renderer and the benchmark harness behind the `rebraid` binary.
+//! The app layer of rebraid: scene loaders, the renderer and the benchmark
+//! harness behind the `rebraid` binary.
+
+pub mod bench;
+pub mod camera;
+#[cfg(feature = "embree")]
+pub mod embree;
+#[cfg(feature = "embree")]
+pub mod embree_bench;
+pub mod loaders;
+pub mod raysets;
+pub mod render;
+pub mod scene_input;

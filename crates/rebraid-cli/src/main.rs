@@ -1,19 +1,573 @@
-use rebraid::glam::Vec3;
-use rebraid::{BuildParams, MeshBvh, TriangleMesh};
+//! The `rebraid` tool: render scenes, benchmark every acceleration mode, and
+//! report scene statistics. Run with no arguments to render the built-in
+//! `library` scene.
 
-fn main() -> anyhow::Result<()> {
-    // Placeholder until the CLI issue: build a BVH over a generated grid and print its statistics.
-    let n = 256u32;
-    let positions: Vec<Vec3> = (0..=n)
-        .flat_map(|j| (0..=n).map(move |i| Vec3::new(i as f32, (i as f32 * 0.1).sin() * (j as f32 * 0.1).cos(), j as f32)))
-        .collect();
-    let idx = |i: u32, j: u32| j * (n + 1) + i;
-    let indices = (0..n)
-        .flat_map(|j| (0..n).flat_map(move |i| [[idx(i, j), idx(i + 1, j), idx(i + 1, j + 1)], [idx(i, j), idx(i + 1, j + 1), idx(i, j + 1)]]))
-        .collect();
-    let mesh = TriangleMesh::new(positions, indices)?;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Context, bail};
+use clap::{Args, Parser, Subcommand};
+use rebraid::{AccelMode, RefBudget, Scene, SceneParams};
+use rebraid_cli::bench::{self, BenchConfig, BenchRow};
+use rebraid_cli::camera::{Camera, UpAxis};
+use rebraid_cli::loaders::{LoadOptions, Split};
+use rebraid_cli::render::{self, RenderSettings};
+use rebraid_cli::scene_input::SceneInput;
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "rebraid",
+    version,
+    about = "Two-level BVHs with partial re-braiding: render and benchmark scenes"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Path-trace a scene to a PNG (and optionally a traversal heat map).
+    Render(RenderArgs),
+    /// Build and trace scenes in every mode with the same rays; print a table.
+    Bench(BenchArgs),
+    /// Scene statistics: objects, triangles, overlap, and per mode the tree statistics.
+    Stats(StatsArgs),
+    /// Internal: trace stored rays through Embree in its own process.
+    #[command(hide = true)]
+    EmbreeWorker(EmbreeWorkerArgs),
+}
+
+/// Options every command shares: how to read scenes and place the camera.
+#[derive(Args, Debug, Clone)]
+struct SceneOpts {
+    /// Size of the built-in `library` scene (1.0 is about a million triangles).
+    #[arg(long, default_value_t = 0.25)]
+    scale: f32,
+    /// Seed of the built-in scenes.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// What becomes one object of an OBJ (or glTF with `material`).
+    #[arg(long, value_enum, default_value_t = SplitArg::Object)]
+    split: SplitArg,
+    /// Bake glTF instances into plain objects.
+    #[arg(long)]
+    flatten_instances: bool,
+    /// Camera as eye_x,eye_y,eye_z,target_x,target_y,target_z,fov (default: inside the scene box at centre - 0.3 x extent, looking at the centre).
+    #[arg(long, allow_hyphen_values = true)]
+    camera: Option<String>,
+    /// Up axis of the scene (auto: its shortest axis).
+    #[arg(long, value_enum, default_value_t = UpAxis::Auto)]
+    up: UpAxis,
+    /// Re-braiding: open refs longer than this fraction of their list's extent.
+    #[arg(long)]
+    threshold: Option<f32>,
+    /// Re-braiding budget: ref slots per initial ref (Embree: 2).
+    #[arg(long)]
+    budget_per_ref: Option<f32>,
+    /// Re-braiding budget: ref slots per primitive (Embree: 0.001).
+    #[arg(long)]
+    budget_per_prim: Option<f32>,
+    /// Re-braiding budget: at least this many ref slots (Embree: 1000).
+    #[arg(long)]
+    budget_min: Option<usize>,
+    /// Do not open object BVHs through instance transforms (Embree's behaviour).
+    #[arg(long)]
+    no_open_instances: bool,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+enum SplitArg {
+    Object,
+    Group,
+    Material,
+    None,
+}
+
+impl SceneOpts {
+    fn load_options(&self) -> LoadOptions {
+        LoadOptions {
+            split: match self.split {
+                SplitArg::Object => Split::Object,
+                SplitArg::Group => Split::Group,
+                SplitArg::Material => Split::Material,
+                SplitArg::None => Split::None,
+            },
+            flatten_instances: self.flatten_instances,
+        }
+    }
+
+    fn scene_params(&self, mode: AccelMode) -> anyhow::Result<SceneParams> {
+        let mut p = SceneParams {
+            mode,
+            ..Default::default()
+        };
+        let r = &mut p.rebraid;
+        if let Some(t) = self.threshold {
+            r.threshold = t;
+        }
+        if let RefBudget::Scaled {
+            min,
+            per_initial_ref,
+            per_primitive,
+        } = &mut r.budget
+        {
+            if let Some(v) = self.budget_min {
+                *min = v;
+            }
+            if let Some(v) = self.budget_per_ref {
+                *per_initial_ref = v;
+            }
+            if let Some(v) = self.budget_per_prim {
+                *per_primitive = v;
+            }
+        }
+        r.open_instances = !self.no_open_instances;
+        r.check()?;
+        Ok(p)
+    }
+
+    fn input(&self, arg: &str) -> anyhow::Result<SceneInput> {
+        SceneInput::parse(arg, self.scale, self.seed)
+    }
+
+    fn camera(&self, bounds: &rebraid::Aabb) -> anyhow::Result<(Camera, rebraid::glam::Vec3)> {
+        let up = self.up.resolve(bounds);
+        let cam = match &self.camera {
+            Some(s) => Camera::parse(s, up)?,
+            None => Camera::fit(bounds, up),
+        };
+        Ok((cam, up))
+    }
+}
+
+fn parse_threads(s: &str) -> anyhow::Result<Vec<usize>> {
+    let all = std::thread::available_parallelism().map_or(1, |n| n.get());
+    s.split(',')
+        .map(|x| match x.trim() {
+            "N" | "n" | "all" => Ok(all),
+            v => {
+                let n: usize = v
+                    .parse()
+                    .with_context(|| format!("--threads: '{v}' is not a number or N"))?;
+                if n == 0 {
+                    bail!("--threads: 0 threads");
+                }
+                Ok(n)
+            }
+        })
+        .collect()
+}
+
+fn parse_modes(s: &str) -> anyhow::Result<Vec<AccelMode>> {
+    s.split(',')
+        .map(|m| Ok(m.trim().parse::<AccelMode>()?))
+        .collect()
+}
+
+#[derive(Args, Debug)]
+struct RenderArgs {
+    /// A scene file (OBJ, glTF/GLB, PLY) or `library`.
+    #[arg(default_value = "library")]
+    scene: String,
+    #[arg(long, default_value = "rebraided")]
+    mode: String,
+    #[arg(short, long, default_value = "render.png")]
+    output: PathBuf,
+    #[arg(long, default_value_t = 960)]
+    width: u32,
+    #[arg(long, default_value_t = 540)]
+    height: u32,
+    /// Samples per pixel.
+    #[arg(long, default_value_t = 4)]
+    spp: u32,
+    /// Diffuse bounces after the primary hit.
+    #[arg(long, default_value_t = 2)]
+    bounces: u32,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Also write a heat map of nodes visited per primary ray.
+    #[arg(long)]
+    heatmap: Option<PathBuf>,
+    /// Node count at the hot end of the heat map's colour scale.
+    #[arg(long, default_value_t = 400)]
+    heat_max: u32,
+    #[command(flatten)]
+    opts: SceneOpts,
+}
+
+#[derive(Args, Debug)]
+struct BenchArgs {
+    /// Scene files or `library` (default: library).
+    scenes: Vec<String>,
+    #[arg(long, default_value = "flat,two-level,rebraided")]
+    modes: String,
+    /// Thread counts, comma-separated; N = all cores.
+    #[arg(long, default_value = "1,N")]
+    threads: String,
+    /// Repetitions per figure (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    reps: usize,
+    #[arg(long, default_value_t = 1280)]
+    width: u32,
+    #[arg(long, default_value_t = 720)]
+    height: u32,
+    /// Write one JSON object per (scene, mode, threads) to this file.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Add Embree 3 rows (embree-flat, embree-two-level), each traced in its own process.
+    #[arg(long)]
+    embree: bool,
+    #[command(flatten)]
+    opts: SceneOpts,
+}
+
+#[derive(Args, Debug)]
+struct StatsArgs {
+    /// Scene files or `library` (default: library).
+    scenes: Vec<String>,
+    #[arg(long, default_value = "flat,two-level,rebraided")]
+    modes: String,
+    #[arg(long)]
+    json: Option<PathBuf>,
+    #[command(flatten)]
+    opts: SceneOpts,
+}
+
+#[derive(Args, Debug)]
+struct EmbreeWorkerArgs {
+    scene: String,
+    #[arg(long)]
+    rays: PathBuf,
+    #[arg(long)]
+    mode: String,
+    #[arg(long)]
+    threads: usize,
+    #[arg(long)]
+    reps: usize,
+    #[command(flatten)]
+    opts: SceneOpts,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        None => run_render(RenderArgs::parse_from(["render"])),
+        Some(Command::Render(a)) => run_render(a),
+        Some(Command::Bench(a)) => run_bench(a),
+        Some(Command::Stats(a)) => run_stats(a),
+        Some(Command::EmbreeWorker(a)) => run_embree_worker(a),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+impl RenderArgs {
+    fn parse_from<const N: usize>(args: [&str; N]) -> Self {
+        #[derive(Parser)]
+        struct Wrap {
+            #[command(flatten)]
+            a: RenderArgs,
+        }
+        Wrap::parse_from(args).a
+    }
+}
+
+fn run_render(a: RenderArgs) -> anyhow::Result<()> {
+    if a.width == 0 || a.height == 0 || a.spp == 0 {
+        bail!("--width, --height and --spp must be at least 1");
+    }
+    if let Some(t) = a.threads {
+        if t == 0 {
+            bail!("--threads must be at least 1");
+        }
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(t)
+            .build_global()
+            .ok();
+    }
+    let mode: AccelMode = a.mode.parse()?;
+    let input = a.opts.input(&a.scene)?;
+    let (desc, load_ms) = input.load(&a.opts.load_options())?;
+    let (_, bounds) = desc.world_boxes();
+    let (camera, up) = a.opts.camera(&bounds)?;
+    let mut scene = Scene::from_desc(&desc, a.opts.scene_params(mode)?)?;
+    let report = scene.commit()?;
+    let st = scene.stats();
+    println!(
+        "scene {}: {} objects, {} instances, {} triangles (loaded in {load_ms:.0} ms)",
+        input.name(),
+        st.objects,
+        st.instances,
+        st.world_triangles
+    );
+    println!(
+        "mode {}: built in {:.1} ms (objects {:.1} ms, top {:.1} ms), SAH cost {:.1}, {:.1} MB",
+        mode.name(),
+        report.total_ms,
+        report.object_build_ms,
+        report.top_build_ms,
+        st.sah_cost,
+        st.bytes as f64 / 1048576.0
+    );
+    println!("camera {}", camera.to_arg());
+    let settings = RenderSettings {
+        width: a.width,
+        height: a.height,
+        spp: a.spp,
+        bounces: a.bounces,
+        camera,
+        bounds,
+        up,
+        progress: true,
+    };
     let t = std::time::Instant::now();
-    let bvh = MeshBvh::build(&mesh, &BuildParams::default())?;
-    println!("built a BVH over {} triangles in {:.1} ms: {:?}", mesh.len(), t.elapsed().as_secs_f64() * 1e3, bvh.stats());
+    let img = render::render(&scene, &settings);
+    render::write_png(&a.output, &img)?;
+    println!(
+        "wrote {} ({}x{}, {} spp) in {:.2} s",
+        a.output.display(),
+        a.width,
+        a.height,
+        a.spp,
+        t.elapsed().as_secs_f64()
+    );
+    if let Some(h) = &a.heatmap {
+        let counts = render::heat_counts(&scene, &settings);
+        render::write_heatmap(h, &counts, a.width, a.height, a.heat_max)?;
+        let mean = counts.iter().map(|&c| c as f64).sum::<f64>() / counts.len().max(1) as f64;
+        println!(
+            "wrote {}: nodes visited per primary ray, colour bar 0 (black) .. {} (white) nodes; mean {mean:.1}, max {}",
+            h.display(),
+            a.heat_max,
+            counts.iter().max().copied().unwrap_or(0)
+        );
+    }
+    Ok(())
+}
+
+fn scene_list(scenes: &[String]) -> Vec<String> {
+    if scenes.is_empty() {
+        vec!["library".to_string()]
+    } else {
+        scenes.to_vec()
+    }
+}
+
+fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
+    let modes = parse_modes(&a.modes)?;
+    let threads = parse_threads(&a.threads)?;
+    if a.reps == 0 || a.width == 0 || a.height == 0 {
+        bail!("--reps, --width and --height must be at least 1");
+    }
+    if a.embree && !cfg!(feature = "embree") {
+        bail!(
+            "--embree needs the tool built with `--features embree` (and libembree-dev installed)"
+        );
+    }
+    let inputs: Vec<SceneInput> = scene_list(&a.scenes)
+        .iter()
+        .map(|s| a.opts.input(s))
+        .collect::<Result<_, _>>()?;
+    let mut rows: Vec<BenchRow> = Vec::new();
+    for input in &inputs {
+        let name = input.name();
+        let (desc, load_ms) = input.load(&a.opts.load_options())?;
+        let (_, bounds) = desc.world_boxes();
+        let (camera, up) = a.opts.camera(&bounds)?;
+        eprintln!(
+            "{name}: {} objects, {} instances, {} triangles, overlap {:.1}, loaded in {load_ms:.0} ms; camera {}",
+            desc.objects.len(),
+            desc.instances.len(),
+            desc.world_triangles(),
+            desc.overlap_ratio(),
+            camera.to_arg()
+        );
+        let params = a.opts.scene_params(modes[0])?;
+        let sets = bench::make_ray_sets(&desc, &params, &camera, up, a.width, a.height)?;
+        let cfg = BenchConfig {
+            modes: modes.clone(),
+            threads: threads.clone(),
+            reps: a.reps,
+            width: a.width,
+            height: a.height,
+            params,
+        };
+        let mut scene_rows = bench::bench_scene(&name, &desc, &sets, &camera, &cfg, |msg| {
+            eprint!("\r\x1b[2K{msg}")
+        })?;
+        eprint!("\r\x1b[2K");
+        if a.embree {
+            scene_rows.extend(embree_rows(input, &a, &sets, &threads)?);
+        }
+        print!("{}", bench::format_table(&scene_rows));
+        rows.extend(scene_rows);
+    }
+    println!();
+    print!("{}", bench::format_answers(&rows));
+    if let Some(p) = &a.json {
+        let mut s = String::new();
+        for r in &rows {
+            s.push_str(&serde_json::to_string(r)?);
+            s.push('\n');
+        }
+        std::fs::write(p, s).with_context(|| format!("writing {}", p.display()))?;
+        println!("wrote {}", p.display());
+    }
+    Ok(())
+}
+
+/// Embree rows, each (mode, threads) traced by a worker process.
+fn embree_rows(
+    input: &SceneInput,
+    a: &BenchArgs,
+    sets: &rebraid_cli::raysets::RaySets,
+    threads: &[usize],
+) -> anyhow::Result<Vec<BenchRow>> {
+    let dir = std::env::temp_dir().join(format!("rebraid-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let rays = dir.join("rays.bin");
+    bench::write_rays(&rays, sets)?;
+    let exe = std::env::current_exe()?;
+    let scene_arg = match input {
+        SceneInput::Library { .. } => "library".to_string(),
+        SceneInput::File(p) => p.display().to_string(),
+    };
+    let mut rows = Vec::new();
+    for &t in threads {
+        for mode in ["embree-flat", "embree-two-level"] {
+            eprint!(
+                "\r\x1b[2K{}: {mode} ({t} thr) in a worker process",
+                input.name()
+            );
+            let mut cmd = std::process::Command::new(&exe);
+            cmd.args(["embree-worker", &scene_arg, "--mode", mode])
+                .arg("--rays")
+                .arg(&rays)
+                .args(["--threads", &t.to_string(), "--reps", &a.reps.to_string()])
+                .args([
+                    "--scale",
+                    &a.opts.scale.to_string(),
+                    "--seed",
+                    &a.opts.seed.to_string(),
+                ]);
+            if a.opts.flatten_instances {
+                cmd.arg("--flatten-instances");
+            }
+            cmd.args(["--split", &format!("{:?}", a.opts.split).to_lowercase()]);
+            let out = cmd.output().context("running the Embree worker")?;
+            if !out.status.success() {
+                bail!(
+                    "Embree worker failed: {}",
+                    String::from_utf8_lossy(&out.stderr).trim()
+                );
+            }
+            let mut row: BenchRow =
+                serde_json::from_slice(&out.stdout).context("reading the Embree worker's row")?;
+            row.scene = input.name();
+            rows.push(row);
+        }
+    }
+    eprint!("\r\x1b[2K");
+    std::fs::remove_dir_all(&dir).ok();
+    Ok(rows)
+}
+
+#[cfg(feature = "embree")]
+fn run_embree_worker(a: EmbreeWorkerArgs) -> anyhow::Result<()> {
+    let row = rebraid_cli::embree_bench::run_worker(
+        &a.opts.input(&a.scene)?,
+        &a.opts.load_options(),
+        &a.rays,
+        &a.mode,
+        a.threads,
+        a.reps,
+    )?;
+    println!("{}", serde_json::to_string(&row)?);
+    Ok(())
+}
+
+#[cfg(not(feature = "embree"))]
+fn run_embree_worker(_: EmbreeWorkerArgs) -> anyhow::Result<()> {
+    bail!("this build has no Embree support (build with --features embree)")
+}
+
+fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
+    let modes = parse_modes(&a.modes)?;
+    let inputs: Vec<SceneInput> = scene_list(&a.scenes)
+        .iter()
+        .map(|s| a.opts.input(s))
+        .collect::<Result<_, _>>()?;
+    let mut json = String::new();
+    for input in &inputs {
+        let (desc, load_ms) = input.load(&a.opts.load_options())?;
+        let overlap = desc.overlap_ratio();
+        println!(
+            "{}: {} objects, {} instances, {} world triangles ({} unique), overlap {:.2}, loaded in {load_ms:.0} ms",
+            input.name(),
+            desc.objects.len(),
+            desc.instances.len(),
+            desc.world_triangles(),
+            desc.unique_triangles(),
+            overlap
+        );
+        println!(
+            "  {:<10} {:>10} {:>10} {:>9} {:>10} {:>10} {:>9} {:>9}",
+            "mode", "build ms", "SAH", "MB", "top nodes", "refs", "opened", "capacity"
+        );
+        let mut per_mode = Vec::new();
+        for &mode in &modes {
+            let mut scene = Scene::from_desc(&desc, a.opts.scene_params(mode)?)?;
+            let rep = scene.commit()?;
+            let st = scene.stats();
+            let top = st.top.clone().unwrap_or_default();
+            println!(
+                "  {:<10} {:>10.1} {:>10.2} {:>9.1} {:>10} {:>10} {:>9} {:>9}",
+                mode.name(),
+                rep.total_ms,
+                st.sah_cost,
+                st.bytes as f64 / 1048576.0,
+                st.top_nodes,
+                top.refs_final,
+                top.nodes_opened,
+                top.capacity
+            );
+            per_mode.push(serde_json::json!({
+                "mode": mode.name(),
+                "build_ms": rep.total_ms,
+                "build_ms_objects": rep.object_build_ms,
+                "build_ms_top": rep.top_build_ms,
+                "sah_cost": st.sah_cost,
+                "bytes": st.bytes,
+                "top_nodes": st.top_nodes,
+                "refs_initial": top.refs_initial,
+                "refs_final": top.refs_final,
+                "refs_opened": top.nodes_opened,
+                "ref_capacity": top.capacity,
+                "flat_depth": st.flat.as_ref().map(|f| f.max_depth),
+            }));
+        }
+        let v = serde_json::json!({
+            "scene": input.name(),
+            "objects": desc.objects.len(),
+            "instances": desc.instances.len(),
+            "triangles": desc.world_triangles(),
+            "unique_triangles": desc.unique_triangles(),
+            "overlap": overlap,
+            "modes": per_mode,
+        });
+        json.push_str(&serde_json::to_string(&v)?);
+        json.push('\n');
+    }
+    if let Some(p) = &a.json {
+        std::fs::write(p, json).with_context(|| format!("writing {}", p.display()))?;
+        println!("wrote {}", p.display());
+    }
     Ok(())
 }

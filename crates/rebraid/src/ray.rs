@@ -13,7 +13,7 @@ pub const INVALID_ID: u32 = u32::MAX;
 /// Queries accept any ray: a ray with a zero or non-finite direction, a
 /// non-finite origin or an empty interval hits nothing. Use [`Ray::new`] to
 /// have such rays rejected with an error instead.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct Ray {
     pub origin: Vec3,

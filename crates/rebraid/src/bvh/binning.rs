@@ -10,7 +10,7 @@ use glam::Vec3;
 use crate::Aabb;
 
 /// The largest number of bins a build may ask for.
-pub const MAX_BINS: usize = 64;
+pub const MAX_BINS: usize = 32;
 
 /// Maps a centroid coordinate to its bin, identically during binning and
 /// partitioning (so a partition can never disagree with the cost it was chosen by).

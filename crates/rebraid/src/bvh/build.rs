@@ -39,7 +39,7 @@ const CHUNK: usize = 1 << 13;
 /// with the scalar kernels of this crate.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BuildParams {
-    /// SAH bins per axis (2 ..= 64).
+    /// SAH bins per axis (2 ..= 32).
     pub bins: usize,
     /// SAH cost of traversing an inner node.
     pub traversal_cost: f32,
@@ -312,7 +312,8 @@ fn build_node(
     let use_sah = depth < MEDIAN_FROM_DEPTH && cbounds.extent().max_element() > 0.0;
 
     let split = if use_sah {
-        let map = BinMapping::new(&cbounds, p.bins);
+        // Small ranges need no more bins than primitives.
+        let map = BinMapping::new(&cbounds, p.bins.min(n.max(4)));
         let bins = bin_range(ctx, prims, &map);
         bins.best_split(&map).map(|s| (map, s))
     } else {

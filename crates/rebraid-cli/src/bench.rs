@@ -1,0 +1,350 @@
+//! `rebraid bench`: build and trace every scene in every mode, with the same
+//! rays, and report build times, memory, SAH cost and Mrays/s.
+//!
+//! Measurement protocol (the machine is shared and noisy): every figure is
+//! the median of `reps` repetitions, and the repetitions alternate between
+//! modes (mode A, mode B, mode C, A, B, C, ...) so that drifts of the machine
+//! hit every mode alike; ratios between modes of one run are what to quote.
+//! Each thread count runs inside its own rayon pool.
+
+use std::time::Instant;
+
+use anyhow::Context;
+use rebraid::glam::Vec3;
+use rebraid::{AccelMode, Hit, Ray, Scene, SceneDesc, SceneParams};
+use serde::Serialize;
+
+use crate::camera::Camera;
+use crate::raysets::RaySets;
+
+/// Results of one ray set.
+#[derive(Clone, Debug, Default, Serialize, serde::Deserialize, PartialEq)]
+pub struct RaySetResult {
+    pub rays: usize,
+    pub hits: usize,
+    /// Sum of closest-hit distances (0 for shadow rays, which are any-hit).
+    pub t_sum: f64,
+    pub mrays_per_s: f64,
+}
+
+/// One row: a (scene, mode, threads) triple.
+#[derive(Clone, Debug, Default, Serialize, serde::Deserialize, PartialEq)]
+pub struct BenchRow {
+    pub scene: String,
+    pub mode: String,
+    pub threads: usize,
+    pub triangles: usize,
+    pub objects: usize,
+    pub instances: usize,
+    pub build_ms_objects: f64,
+    /// Top-level build; for `flat`, the build of its single BVH.
+    pub build_ms_top: f64,
+    pub build_ms_total: f64,
+    pub mtris_per_s: f64,
+    pub sah_cost: f64,
+    pub bytes: usize,
+    pub refs_opened: usize,
+    pub primary: RaySetResult,
+    pub shadow: RaySetResult,
+    pub diffuse: RaySetResult,
+    pub camera: String,
+}
+
+/// What to run.
+#[derive(Clone, Debug)]
+pub struct BenchConfig {
+    pub modes: Vec<AccelMode>,
+    pub threads: Vec<usize>,
+    pub reps: usize,
+    pub width: u32,
+    pub height: u32,
+    pub params: SceneParams,
+}
+
+/// The median of a non-empty list.
+pub fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    let n = v.len();
+    if n == 0 {
+        return 0.0;
+    }
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// Hits and distance sum of closest-hit results.
+pub fn summarize_hits(hits: &[Option<Hit>]) -> (usize, f64) {
+    hits.iter()
+        .flatten()
+        .fold((0, 0.0), |(n, s), h| (n + 1, s + h.t as f64))
+}
+
+fn pool(threads: usize) -> anyhow::Result<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .context("building a thread pool")
+}
+
+/// Generate the ray sets of a scene with its camera. The reference scene is
+/// committed in `mode` on all threads.
+pub fn make_ray_sets(
+    desc: &SceneDesc,
+    params: &SceneParams,
+    camera: &Camera,
+    up: Vec3,
+    width: u32,
+    height: u32,
+) -> anyhow::Result<RaySets> {
+    let mut scene = Scene::from_desc(desc, params.clone())?;
+    scene.commit()?;
+    let (_, bounds) = desc.world_boxes();
+    Ok(RaySets::generate(
+        camera,
+        width,
+        height,
+        &bounds,
+        up,
+        |r, h| scene.intersect_batch(r, h),
+    ))
+}
+
+/// Trace the three sets once; returns seconds per set and the answers.
+fn trace_sets(
+    scene: &Scene,
+    sets: &RaySets,
+    hits: &mut Vec<Option<Hit>>,
+    occ: &mut Vec<bool>,
+) -> [(f64, usize, f64); 3] {
+    let mut out = [(0.0, 0, 0.0); 3];
+    for (k, rays) in [&sets.primary, &sets.shadow, &sets.diffuse]
+        .into_iter()
+        .enumerate()
+    {
+        let t = Instant::now();
+        if k == 1 {
+            occ.clear();
+            occ.resize(rays.len(), false);
+            scene.occluded_batch(rays, occ);
+            out[k] = (
+                t.elapsed().as_secs_f64(),
+                occ.iter().filter(|&&o| o).count(),
+                0.0,
+            );
+        } else {
+            hits.clear();
+            hits.resize(rays.len(), None);
+            scene.intersect_batch(rays, hits);
+            let secs = t.elapsed().as_secs_f64();
+            let (n, s) = summarize_hits(hits);
+            out[k] = (secs, n, s);
+        }
+    }
+    out
+}
+
+/// Run every mode and thread count on one scene.
+pub fn bench_scene(
+    name: &str,
+    desc: &SceneDesc,
+    sets: &RaySets,
+    camera: &Camera,
+    cfg: &BenchConfig,
+    mut progress: impl FnMut(&str) + Send,
+) -> anyhow::Result<Vec<BenchRow>> {
+    let mut rows = Vec::new();
+    let tris = desc.world_triangles();
+    for &threads in &cfg.threads {
+        let pool = pool(threads)?;
+        let rows_t: anyhow::Result<Vec<BenchRow>> = pool.install(|| {
+            let m = cfg.modes.len();
+            let mut builds: Vec<Vec<(f64, f64, f64)>> = vec![Vec::new(); m];
+            let mut scenes: Vec<Option<Scene>> = (0..m).map(|_| None).collect();
+            for rep in 0..cfg.reps {
+                for (i, &mode) in cfg.modes.iter().enumerate() {
+                    progress(&format!(
+                        "{name}: build {} ({threads} thr, rep {})",
+                        mode.name(),
+                        rep + 1
+                    ));
+                    let mut params = cfg.params.clone();
+                    params.mode = mode;
+                    let mut scene = Scene::from_desc(desc, params)?;
+                    let r = scene.commit()?;
+                    builds[i].push((r.object_build_ms, r.top_build_ms, r.total_ms));
+                    scenes[i] = Some(scene);
+                }
+            }
+            let mut times: Vec<[Vec<f64>; 3]> = vec![Default::default(); m];
+            let mut answers = vec![[(0usize, 0.0f64); 3]; m];
+            let mut hits = Vec::new();
+            let mut occ = Vec::new();
+            for rep in 0..cfg.reps {
+                for (i, &mode) in cfg.modes.iter().enumerate() {
+                    progress(&format!(
+                        "{name}: trace {} ({threads} thr, rep {})",
+                        mode.name(),
+                        rep + 1
+                    ));
+                    let scene = scenes[i].as_ref().expect("built above");
+                    let r = trace_sets(scene, sets, &mut hits, &mut occ);
+                    for k in 0..3 {
+                        times[i][k].push(r[k].0);
+                        answers[i][k] = (r[k].1, r[k].2);
+                    }
+                }
+            }
+            let mut out = Vec::new();
+            for (i, &mode) in cfg.modes.iter().enumerate() {
+                let scene = scenes[i].as_ref().expect("built above");
+                let st = scene.stats();
+                let b = &builds[i];
+                let total = median(b.iter().map(|x| x.2).collect());
+                let set = |k: usize, rays: usize| RaySetResult {
+                    rays,
+                    hits: answers[i][k].0,
+                    t_sum: answers[i][k].1,
+                    mrays_per_s: rays as f64 / median(times[i][k].clone()).max(1e-12) / 1e6,
+                };
+                out.push(BenchRow {
+                    scene: name.to_string(),
+                    mode: mode.name().to_string(),
+                    threads,
+                    triangles: tris,
+                    objects: st.objects,
+                    instances: st.instances,
+                    build_ms_objects: median(b.iter().map(|x| x.0).collect()),
+                    build_ms_top: median(b.iter().map(|x| x.1).collect()),
+                    build_ms_total: total,
+                    mtris_per_s: tris as f64 / (total.max(1e-9) * 1e-3) / 1e6,
+                    sah_cost: st.sah_cost,
+                    bytes: st.bytes,
+                    refs_opened: st.top.as_ref().map_or(0, |t| t.nodes_opened),
+                    primary: set(0, sets.primary.len()),
+                    shadow: set(1, sets.shadow.len()),
+                    diffuse: set(2, sets.diffuse.len()),
+                    camera: camera.to_arg(),
+                });
+            }
+            Ok(out)
+        });
+        rows.extend(rows_t?);
+    }
+    Ok(rows)
+}
+
+/// The rows as a fixed-width table.
+pub fn format_table(rows: &[BenchRow]) -> String {
+    let mut s = String::new();
+    s.push_str(&format!(
+        "{:<24} {:<17} {:>3} {:>9} {:>9} {:>8} {:>9} {:>7} {:>8} {:>8} {:>7} {:>8} {:>8} {:>8}\n",
+        "scene",
+        "mode",
+        "thr",
+        "tris",
+        "obj ms",
+        "top ms",
+        "total ms",
+        "Mtri/s",
+        "MB",
+        "SAH",
+        "opened",
+        "primary",
+        "shadow",
+        "diffuse"
+    ));
+    for r in rows {
+        s.push_str(&format!(
+            "{:<24} {:<17} {:>3} {:>9} {:>9.1} {:>8.1} {:>9.1} {:>7.2} {:>8.1} {:>8.1} {:>7} {:>8.2} {:>8.2} {:>8.2}\n",
+            r.scene,
+            r.mode,
+            r.threads,
+            r.triangles,
+            r.build_ms_objects,
+            r.build_ms_top,
+            r.build_ms_total,
+            r.mtris_per_s,
+            r.bytes as f64 / (1024.0 * 1024.0),
+            r.sah_cost,
+            r.refs_opened,
+            r.primary.mrays_per_s,
+            r.shadow.mrays_per_s,
+            r.diffuse.mrays_per_s,
+        ));
+    }
+    s
+}
+
+/// Hits and distance sums per ray set, to check that modes agree.
+pub fn format_answers(rows: &[BenchRow]) -> String {
+    let mut s = String::from("answers (hits / sum of t) per ray set:\n");
+    for r in rows
+        .iter()
+        .filter(|r| r.threads == rows[0].threads || r.mode.starts_with("embree"))
+    {
+        s.push_str(&format!(
+            "  {:<24} {:<17} primary {:>8} / {:<16.6e} shadow {:>8} occluded   diffuse {:>8} / {:<16.6e}\n",
+            r.scene, r.mode, r.primary.hits, r.primary.t_sum, r.shadow.hits, r.diffuse.hits, r.diffuse.t_sum
+        ));
+    }
+    s
+}
+
+/// Load a ray file written by [`write_rays`].
+pub fn read_rays(path: &std::path::Path) -> anyhow::Result<RaySets> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut sets = RaySets::default();
+    let mut rest = bytes.as_slice();
+    for v in [&mut sets.primary, &mut sets.shadow, &mut sets.diffuse] {
+        anyhow::ensure!(rest.len() >= 8, "truncated ray file {}", path.display());
+        let n = u64::from_le_bytes(rest[..8].try_into()?) as usize;
+        rest = &rest[8..];
+        let len = n * std::mem::size_of::<Ray>();
+        anyhow::ensure!(rest.len() >= len, "truncated ray file {}", path.display());
+        *v = bytemuck::pod_collect_to_vec(&rest[..len]);
+        rest = &rest[len..];
+    }
+    Ok(sets)
+}
+
+/// Store ray sets for a worker process (the Embree rows run in their own
+/// process so that Embree's TBB threads never share a run with rayon's).
+pub fn write_rays(path: &std::path::Path, sets: &RaySets) -> anyhow::Result<()> {
+    let mut out = Vec::new();
+    for v in [&sets.primary, &sets.shadow, &sets.diffuse] {
+        out.extend_from_slice(&(v.len() as u64).to_le_bytes());
+        out.extend_from_slice(bytemuck::cast_slice(v));
+    }
+    std::fs::write(path, out).with_context(|| format!("writing {}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn median_of_odd_and_even() {
+        assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(vec![4.0, 1.0, 2.0, 3.0]), 2.5);
+    }
+
+    #[test]
+    fn ray_file_round_trips() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("rays.bin");
+        let r = Ray::infinite(Vec3::new(1.0, 2.0, 3.0), Vec3::X);
+        let sets = RaySets {
+            primary: vec![r; 3],
+            shadow: vec![],
+            diffuse: vec![r],
+        };
+        write_rays(&p, &sets).unwrap();
+        let back = read_rays(&p).unwrap();
+        assert_eq!(back.primary, sets.primary);
+        assert_eq!(back.diffuse, sets.diffuse);
+        assert!(back.shadow.is_empty());
+    }
+}
