@@ -1,0 +1,456 @@
+//! Loader tests: the real third-party scenes of `shared/scenes` (counts from
+//! its README), small files written here into a temporary directory, and
+//! malformed files, each error checked to name the file and the line or
+//! element.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use rebraid::SceneDesc;
+use rebraid_cli::loaders::{
+    LoadError, LoadOptions, Location, Split, load_scene, load_scene_with_warnings,
+};
+
+/// The shared scenes: `$REBRAID_SCENES`, else `../shared/scenes` next to the
+/// workspace. `None` (after saying so) when missing, except under `CI=true`,
+/// where a missing directory fails the test: CI must exercise real data.
+fn scenes_dir() -> Option<PathBuf> {
+    let dir = std::env::var_os("REBRAID_SCENES")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            PathBuf::from(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/../../../shared/scenes"
+            ))
+        });
+    if dir.is_dir() {
+        return Some(dir);
+    }
+    if std::env::var("CI").is_ok_and(|v| v == "true") {
+        panic!(
+            "scenes directory {} is missing and CI=true: real-scene tests must run in CI",
+            dir.display()
+        );
+    }
+    eprintln!(
+        "SKIPPED: scenes directory {} not found (set REBRAID_SCENES)",
+        dir.display()
+    );
+    None
+}
+
+fn opts(split: Split, flatten_instances: bool) -> LoadOptions {
+    LoadOptions {
+        split,
+        flatten_instances,
+    }
+}
+
+fn timed_load(path: &Path, o: &LoadOptions) -> SceneDesc {
+    let t = Instant::now();
+    let s = load_scene(path, o).unwrap_or_else(|e| panic!("{e}"));
+    eprintln!(
+        "{} ({:?}, flatten {}): {:.1} ms, {} objects, {} instances, {} world / {} unique triangles, overlap {:.2}",
+        path.file_name().unwrap().to_string_lossy(),
+        o.split,
+        o.flatten_instances,
+        t.elapsed().as_secs_f64() * 1e3,
+        s.objects.len(),
+        s.instances.len(),
+        s.world_triangles(),
+        s.unique_triangles(),
+        s.overlap_ratio()
+    );
+    s.validate().unwrap();
+    s
+}
+
+#[test]
+fn real_obj_scenes_match_the_readme() {
+    let Some(dir) = scenes_dir() else { return };
+    for (file, objects, tris, overlap) in [
+        ("samurai_monastery.obj", 81, 124_789, 5.2),
+        ("nexuiz_ons_reborn.obj", 114, 125_101, 21.8),
+        ("openarena_oa_thor.obj", 51, 57_743, 9.6),
+    ] {
+        let s = timed_load(&dir.join(file), &LoadOptions::default());
+        assert_eq!(s.objects.len(), objects, "{file}");
+        assert_eq!(s.world_triangles(), tris, "{file}");
+        assert!(s.instances.is_empty());
+        assert!(s.objects.iter().all(|o| o.placed));
+        assert!(
+            (s.overlap_ratio() - overlap).abs() < 0.1,
+            "{file}: overlap {}",
+            s.overlap_ratio()
+        );
+        // Same triangles whatever the split.
+        let one = timed_load(&dir.join(file), &opts(Split::None, false));
+        assert_eq!(one.objects.len(), 1);
+        assert_eq!(one.world_triangles(), tris);
+    }
+}
+
+#[test]
+fn real_glb_scenes_match_the_readme() {
+    let Some(dir) = scenes_dir() else { return };
+    // (file, meshes, mesh nodes, (node, material) pairs, world tris, unique tris)
+    for (file, meshes, nodes, pairs, world, unique) in [
+        ("stk_cocoa_temple.glb", 59, 1_485, 2_482, 462_347, 110_015),
+        (
+            "stk_ravenbridge_mansion.glb",
+            56,
+            513,
+            768,
+            274_892,
+            138_137,
+        ),
+        ("2CylinderEngine.glb", 29, 67, 0, 121_496, 0),
+    ] {
+        let path = dir.join(file);
+        let s = timed_load(&path, &LoadOptions::default());
+        assert_eq!(s.objects.len(), meshes, "{file}");
+        assert_eq!(s.instances.len(), nodes, "{file}");
+        assert_eq!(s.world_triangles(), world, "{file}");
+        if unique > 0 {
+            assert_eq!(s.unique_triangles(), unique, "{file}");
+        }
+        assert!(s.objects.iter().all(|o| !o.placed));
+
+        let m = timed_load(&path, &opts(Split::Material, false));
+        if pairs > 0 {
+            assert_eq!(m.instances.len(), pairs, "{file}");
+        }
+        assert_eq!(m.world_triangles(), world, "{file}");
+
+        let flat = timed_load(&path, &opts(Split::Object, true));
+        assert_eq!(flat.objects.len(), nodes, "{file}");
+        assert!(flat.instances.is_empty() && flat.objects.iter().all(|o| o.placed));
+        assert_eq!(flat.world_triangles(), world, "{file}");
+        // Baking the transforms must give the same world geometry: compare
+        // the exact bounds of the transformed vertices.
+        let exact = s.instances.iter().fold(rebraid::Aabb::EMPTY, |b, i| {
+            let o = &s.objects[i.object as usize];
+            o.mesh
+                .positions
+                .iter()
+                .fold(b, |b, &p| b.grow(i.transform.transform_point3(p)))
+        });
+        let (_, flat_box) = flat.world_boxes();
+        let tol = 1e-4 * exact.extent().max_element();
+        assert!(
+            (exact.min - flat_box.min).abs().max_element() < tol,
+            "{file}"
+        );
+        assert!(
+            (exact.max - flat_box.max).abs().max_element() < tol,
+            "{file}"
+        );
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Small files written by the tests.
+
+fn write(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, bytes).unwrap();
+    p
+}
+
+fn names(s: &SceneDesc) -> Vec<(&str, usize)> {
+    s.objects
+        .iter()
+        .map(|o| (o.name.as_str(), o.mesh.len()))
+        .collect()
+}
+
+#[test]
+fn obj_quads_negative_indices_and_vertex_forms() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = write(
+        dir.path(),
+        "quads.obj",
+        b"# a quad, a pentagon and relative indices\r\n\
+          v 0 0 0\r\nv 1 0 0 1.0\r\nv 1 1 0\r\nv 0 1 0 0.5 0.5 0.5\r\nv 0.5 2 0\r\n\
+          vt 0 0\nvn 0 0 1\n\
+          f 1 2 3 4\n\
+          f 1/1/1 2/1/1 3//1 5 4  # pentagon\n\
+          f -5 -4 -3\n\
+          s off\nl 1 2\n",
+    );
+    let s = load_scene(&p, &LoadOptions::default()).unwrap();
+    assert_eq!(names(&s), vec![("quads", 2 + 3 + 1)]);
+    let m = &s.objects[0].mesh;
+    assert_eq!(m.positions.len(), 5);
+    assert_eq!(m.indices[0], [0, 1, 2]);
+    assert_eq!(m.indices[1], [0, 2, 3]);
+    assert_eq!(m.triangle(5), m.triangle(0));
+}
+
+const SPLITS_OBJ: &[u8] = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n\
+    o A\ng g1\nusemtl red\nf 1 2 3\nf 1 2 4\n\
+    o B\ng g2\nusemtl blue\nf 1 3 4\n\
+    usemtl red\nf 2 3 4\n\
+    g g1\nf 1 2 3\n";
+
+#[test]
+fn obj_splits_by_object_group_material_or_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = write(dir.path(), "splits.obj", SPLITS_OBJ);
+    let load = |split| load_scene(&p, &opts(split, false)).unwrap();
+    assert_eq!(names(&load(Split::Object)), vec![("A", 2), ("B", 3)]);
+    assert_eq!(names(&load(Split::Group)), vec![("g1", 3), ("g2", 2)]);
+    assert_eq!(names(&load(Split::Material)), vec![("red", 4), ("blue", 1)]);
+    assert_eq!(names(&load(Split::None)), vec![("splits", 5)]);
+    // Each object gets only the vertices it uses.
+    let b = &load(Split::Object).objects[1];
+    assert_eq!(b.mesh.positions.len(), 4);
+    assert!(load(Split::Object).objects.iter().all(|o| o.placed));
+}
+
+#[test]
+fn obj_with_one_object_falls_back_to_materials() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = write(
+        dir.path(),
+        "one.obj",
+        b"o only\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl a\nf 1 2 3\nusemtl b\nf 3 2 1\nf 1 3 2\n",
+    );
+    let s = load_scene(&p, &LoadOptions::default()).unwrap();
+    assert_eq!(names(&s), vec![("a", 1), ("b", 2)]);
+    let s = load_scene(&p, &opts(Split::Group, false)).unwrap();
+    assert_eq!(names(&s), vec![("one", 3)]);
+}
+
+/// A unit cube as a PLY header (after the format line) and its elements.
+const CUBE_VERTS: [[f64; 3]; 8] = [
+    [0., 0., 0.],
+    [1., 0., 0.],
+    [1., 1., 0.],
+    [0., 1., 0.],
+    [0., 0., 1.],
+    [1., 0., 1.],
+    [1., 1., 1.],
+    [0., 1., 1.],
+];
+const CUBE_QUADS: [[u32; 4]; 6] = [
+    [0, 3, 2, 1],
+    [4, 5, 6, 7],
+    [0, 1, 5, 4],
+    [1, 2, 6, 5],
+    [2, 3, 7, 6],
+    [3, 0, 4, 7],
+];
+
+fn cube_ascii_ply() -> String {
+    let mut s = String::from(
+        "ply\nformat ascii 1.0\ncomment a cube\nelement vertex 8\nproperty double x\nproperty double y\nproperty double z\n\
+         property uchar red\nelement face 6\nproperty list uchar int vertex_indices\nend_header\n",
+    );
+    for v in CUBE_VERTS {
+        s += &format!("{} {} {} 255\n", v[0], v[1], v[2]);
+    }
+    for f in CUBE_QUADS {
+        s += &format!("4 {} {} {} {}\n", f[0], f[1], f[2], f[3]);
+    }
+    s
+}
+
+fn cube_binary_ply(big_endian: bool) -> Vec<u8> {
+    let fmt = if big_endian {
+        "binary_big_endian"
+    } else {
+        "binary_little_endian"
+    };
+    let mut b = format!(
+        "ply\nformat {fmt} 1.0\nelement vertex 8\nproperty float x\nproperty float y\nproperty float z\n\
+         element face 6\nproperty uchar flags\nproperty list ushort uint vertex_index\nend_header\n"
+    )
+    .into_bytes();
+    let f32b = |v: f32| {
+        if big_endian {
+            v.to_be_bytes()
+        } else {
+            v.to_le_bytes()
+        }
+    };
+    let u32b = |v: u32| {
+        if big_endian {
+            v.to_be_bytes()
+        } else {
+            v.to_le_bytes()
+        }
+    };
+    let u16b = |v: u16| {
+        if big_endian {
+            v.to_be_bytes()
+        } else {
+            v.to_le_bytes()
+        }
+    };
+    for v in CUBE_VERTS {
+        for c in v {
+            b.extend(f32b(c as f32));
+        }
+    }
+    for f in CUBE_QUADS {
+        b.push(7);
+        b.extend(u16b(4));
+        for i in f {
+            b.extend(u32b(i));
+        }
+    }
+    b
+}
+
+#[test]
+fn ply_ascii_and_binary_cubes() {
+    let dir = tempfile::tempdir().unwrap();
+    let files = [
+        write(dir.path(), "cube_ascii.ply", cube_ascii_ply().as_bytes()),
+        write(dir.path(), "cube_le.ply", &cube_binary_ply(false)),
+        write(dir.path(), "cube_be.PLY", &cube_binary_ply(true)),
+    ];
+    let mut meshes = Vec::new();
+    for p in &files {
+        let s = load_scene(p, &LoadOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(s.objects.len(), 1);
+        assert_eq!(s.world_triangles(), 12);
+        assert_eq!(s.objects[0].mesh.positions.len(), 8);
+        assert!((s.overlap_ratio() - 1.0).abs() < 1e-6);
+        meshes.push(s.objects[0].mesh.clone());
+    }
+    assert_eq!(meshes[0], meshes[1]);
+    assert_eq!(meshes[1], meshes[2]);
+    assert_eq!(meshes[0].indices[0], [0, 3, 2]);
+    assert_eq!(meshes[0].indices[1], [0, 2, 1]);
+}
+
+// --- A tiny GLB built by hand: JSON chunk + binary chunk. ---
+
+fn glb(json: &str, bin: &[u8]) -> Vec<u8> {
+    let mut j = json.as_bytes().to_vec();
+    while j.len() % 4 != 0 {
+        j.push(b' ');
+    }
+    let mut b = bin.to_vec();
+    while b.len() % 4 != 0 {
+        b.push(0);
+    }
+    let total = 12 + 8 + j.len() + if b.is_empty() { 0 } else { 8 + b.len() };
+    let mut out = Vec::with_capacity(total);
+    out.extend(b"glTF");
+    out.extend(2u32.to_le_bytes());
+    out.extend((total as u32).to_le_bytes());
+    out.extend((j.len() as u32).to_le_bytes());
+    out.extend(b"JSON");
+    out.extend(j);
+    if !b.is_empty() {
+        out.extend((b.len() as u32).to_le_bytes());
+        out.extend(b"BIN\0");
+        out.extend(b);
+    }
+    out
+}
+
+/// Buffer: 4 positions (48 bytes), then 3 u16 indices (6 bytes, padded to 8).
+fn glb_buffer(positions: &[[f32; 3]; 4], indices: [u16; 3]) -> Vec<u8> {
+    let mut b = Vec::new();
+    for p in positions {
+        for c in p {
+            b.extend(c.to_le_bytes());
+        }
+    }
+    for i in indices {
+        b.extend(i.to_le_bytes());
+    }
+    b.extend([0, 0]);
+    b
+}
+
+const QUAD: [[f32; 3]; 4] = [[0., 0., 0.], [1., 0., 0.], [0., 1., 0.], [1., 1., 0.]];
+
+/// Mesh 0: an indexed triangle (two primitives: triangles + points).
+/// Mesh 1: a non-indexed triangle strip over 4 vertices (2 triangles).
+/// Nodes: 0 root (translate x 10; children 1, 2), 1 (scale 2,1,1; mesh 0),
+/// 2 (rotate 90 degrees about z; child 3), 3 (translate y 5; mesh 1), 4 (not
+/// in the scene; mesh 0).
+fn tiny_gltf_json(index_count: u32, node0_extra: &str, pos_min: &str) -> String {
+    format!(
+        r#"{{
+  "asset": {{"version": "2.0"}},
+  "buffers": [{{"byteLength": 56}}],
+  "bufferViews": [
+    {{"buffer": 0, "byteOffset": 0, "byteLength": 48}},
+    {{"buffer": 0, "byteOffset": 48, "byteLength": 6}}
+  ],
+  "accessors": [
+    {{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": {pos_min}, "max": [1, 1, 0]}},
+    {{"bufferView": 1, "componentType": 5123, "count": {index_count}, "type": "SCALAR"}}
+  ],
+  "materials": [{{"name": "steel"}}, {{"name": "brass"}}],
+  "meshes": [
+    {{"name": "tri", "primitives": [
+      {{"attributes": {{"POSITION": 0}}, "indices": 1, "material": 0}},
+      {{"attributes": {{"POSITION": 0}}, "mode": 0, "material": 1}}
+    ]}},
+    {{"name": "strip", "primitives": [{{"attributes": {{"POSITION": 0}}, "mode": 5, "material": 1}}]}}
+  ],
+  "nodes": [
+    {{"name": "root", "translation": [10, 0, 0], "children": [1, 2]{node0_extra}}},
+    {{"name": "stretched", "scale": [2, 1, 1], "mesh": 0}},
+    {{"name": "turned", "rotation": [0, 0, 0.70710677, 0.70710677], "children": [3]}},
+    {{"name": "lifted", "translation": [0, 5, 0], "mesh": 1}},
+    {{"name": "orphan", "mesh": 0}}
+  ],
+  "scenes": [{{"nodes": [0]}}],
+  "scene": 0
+}}"#
+    )
+}
+
+#[test]
+fn glb_node_hierarchy_instances_and_flattening() {
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = glb(
+        &tiny_gltf_json(3, "", "[0, 0, 0]"),
+        &glb_buffer(&QUAD, [0, 1, 2]),
+    );
+    let p = write(dir.path(), "tiny.glb", &bytes);
+    let loaded =
+        load_scene_with_warnings(&p, &LoadOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+    let s = &loaded.scene;
+    assert_eq!(names(s), vec![("tri", 1), ("strip", 2)]);
+    assert!(s.objects.iter().all(|o| !o.placed));
+    assert_eq!(s.instances.len(), 2, "the orphan node is in no scene");
+    assert_eq!(loaded.warnings.len(), 1, "{:?}", loaded.warnings);
+    assert!(
+        loaded.warnings[0].contains("primitive 1"),
+        "{:?}",
+        loaded.warnings
+    );
+    let i0 = &s.instances[0];
+    assert_eq!((i0.name.as_str(), i0.object), ("stretched", 0));
+    assert!(
+        (i0.transform.transform_point3(glam::Vec3::X) - glam::Vec3::new(12.0, 0.0, 0.0)).length()
+            < 1e-5
+    );
+    let i1 = &s.instances[1];
+    assert_eq!((i1.name.as_str(), i1.object), ("lifted", 1));
+    // root * turned * lifted: (0,0,0) -> (0,5,0) -> (-5,0,0) -> (5,0,0).
+    assert!(
+        (i1.transform.transform_point3(glam::Vec3::ZERO) - glam::Vec3::new(5.0, 0.0, 0.0)).length()
+            < 1e-5
+    );
+    // Strip winding alternates: (0,1,2), (2,1,3).
+    assert_eq!(s.objects[1].mesh.indices, vec![[0, 1, 2], [2, 1, 3]]);
+    assert_eq!(s.world_triangles(), 3);
+
+    let flat = load_scene(&p, &opts(Split::Object, true)).unwrap();
+    assert_eq!(flat.objects.len(), 2);
+    assert!(flat.instances.is_empty() && flat.objects.iter().all(|o| o.placed));
+    assert!((flat.objects[1].mesh.positions[0] - glam::Vec3::new(5.0, 0.0, 0.0)).length() < 1e-5);
+
+    let per_prim = load_scene(&p, &opts(Split::Material, false)).unwrap();
+    assert_eq!(names(&per_prim), vec![("tri/steel", 1), ("strip/brass", 2)]);
+}
