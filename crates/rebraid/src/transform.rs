@@ -36,9 +36,17 @@ pub fn transform_box(t: &Affine3A, b: &Aabb) -> Aabb {
     let h = b.extent() * 0.5;
     let m = t.matrix3;
     let e = Vec3::from(m.x_axis.abs() * h.x + m.y_axis.abs() * h.y + m.z_axis.abs() * h.z);
-    // Round outwards by a few ulps so that the box surely holds every
-    // transformed point, whatever the rounding of `transform_point3`.
-    let pad = (c.abs() + e) * (4.0 * f32::EPSILON);
+    // Round outwards so that the box surely holds every transformed point,
+    // whatever the rounding of `transform_point3`: its error scales with the
+    // magnitudes of the terms it sums (linear part and translation), which
+    // can far exceed the result's when the translation cancels them.
+    let mag = Vec3::from(
+        m.x_axis.abs() * (b.center().x.abs() + h.x)
+            + m.y_axis.abs() * (b.center().y.abs() + h.y)
+            + m.z_axis.abs() * (b.center().z.abs() + h.z)
+            + t.translation.abs(),
+    );
+    let pad = (c.abs() + e + mag) * (4.0 * f32::EPSILON);
     Aabb::new(c - e - pad, c + e + pad)
 }
 
