@@ -17,8 +17,8 @@ const ROBUST_FAR: f32 = 1.0 + 2.0 * (3.0 * f32::EPSILON * 0.5) / (1.0 - 3.0 * f3
 ///
 /// A zero direction component gives an infinite reciprocal; the slab test
 /// then yields `+-inf` (outside or inside that slab) or NaN when the origin
-/// lies exactly on the slab plane, which the NaN-ignoring `min`/`max` below
-/// treat as inside.
+/// lies exactly on the slab plane, which [`BoxRay::hit_node`] treats as
+/// inside that slab for every `t`.
 #[derive(Clone, Copy, Debug)]
 pub struct BoxRay {
     pub origin: Vec3,
@@ -39,13 +39,15 @@ impl BoxRay {
     pub fn hit_node(&self, node: &BvhNode, t_min: f32, t_max: f32) -> f32 {
         let t0 = (Vec3::from_array(node.min) - self.origin) * self.inv_dir;
         let t1 = (Vec3::from_array(node.max) - self.origin) * self.inv_dir;
-        // f32::min/max return the non-NaN operand.
-        let near =
-            t0.x.min(t1.x)
-                .max(t0.y.min(t1.y))
-                .max(t0.z.min(t1.z))
-                .max(t_min);
-        let far = t0.x.max(t1.x).min(t0.y.max(t1.y)).min(t0.z.max(t1.z)) * ROBUST_FAR;
+        // A NaN (0 * inf: zero direction component, origin on a slab plane)
+        // means the ray lies in that plane: inside the slab for every t. The
+        // other bound of that slab is then +-inf, so NaN-ignoring min/max
+        // would yield an empty slab; widen such slabs to (-inf, inf) instead.
+        let in_plane = t0.is_nan_mask() | t1.is_nan_mask();
+        let lo = Vec3::select(in_plane, Vec3::NEG_INFINITY, t0.min(t1));
+        let hi = Vec3::select(in_plane, Vec3::INFINITY, t0.max(t1));
+        let near = lo.x.max(lo.y).max(lo.z).max(t_min);
+        let far = hi.x.min(hi.y).min(hi.z) * ROBUST_FAR;
         let far = far.min(t_max);
         if near <= far { near } else { f32::INFINITY }
     }
