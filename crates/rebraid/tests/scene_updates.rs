@@ -1,0 +1,500 @@
+//! Scene edits and commits: queries follow every edit (against the brute
+//! force), commits rebuild exactly the changed objects, queries before a
+//! commit and on empty scenes, and the errors of bad edits. Issue "Scenes of
+//! many objects".
+
+mod scene_common;
+
+use rand::Rng;
+use rebraid::glam::{Affine3A, Mat3, Vec3};
+use rebraid::scene::Accel;
+use rebraid::{AccelMode, CommitReport, Error, Ray, Scene, SceneParams, TriangleMesh};
+use scene_common::*;
+
+fn params(mode: AccelMode) -> SceneParams {
+    SceneParams {
+        mode,
+        ..Default::default()
+    }
+}
+
+/// Check a commit's report and the scene's answers against the model.
+fn verify(
+    scene: &Scene,
+    model: &Model,
+    rep: &CommitReport,
+    rebuilt: &[u32],
+    seed: u64,
+    what: &str,
+) {
+    let mode = scene.mode();
+    let what = format!("{mode:?} {what}");
+    assert_eq!(rep.mode, mode, "{what}");
+    assert_eq!(scene.object_count(), model.objects.len(), "{what}");
+    assert_eq!(scene.instance_count(), model.instances.len(), "{what}");
+    assert_eq!(scene.world_triangles(), model.world_triangles(), "{what}");
+    if mode != AccelMode::Flat {
+        // (Flat mode: see `needs_commit_is_false_after_a_flat_commit`.)
+        assert!(!scene.needs_commit(), "{what}");
+        let mut got = rep.objects_rebuilt.clone();
+        got.sort_unstable();
+        assert_eq!(got, rebuilt, "{what}: objects rebuilt");
+        assert_eq!(
+            rep.objects_reused,
+            model.objects.len() - rebuilt.len(),
+            "{what}: objects reused"
+        );
+        let tris: usize = rebuilt.iter().map(|id| model.objects[id].0.len()).sum();
+        assert_eq!(rep.triangles_rebuilt, tris, "{what}");
+        match scene.accel() {
+            Accel::TopLevel(t) => check_top(t, model, &what),
+            Accel::Empty => assert_eq!(model.world_triangles(), 0, "{what}"),
+            Accel::Flat(_) => panic!("{what}: flat accel"),
+        }
+    }
+    let world = model.world();
+    let rays = random_rays(&mut rng(seed), &world, 300, SCENE_LO, SCENE_HI);
+    check_scene(
+        scene,
+        &world,
+        &rays,
+        mode == AccelMode::Flat || model.instances.is_empty(),
+        &what,
+    );
+}
+
+fn jitter(rng: &mut impl Rng, mesh: &TriangleMesh) -> Vec<Vec3> {
+    let shift = rand_in(rng, Vec3::splat(-3.0), Vec3::splat(3.0));
+    mesh.positions
+        .iter()
+        .map(|p| *p + shift + rand_in(rng, Vec3::splat(-0.2), Vec3::splat(0.2)))
+        .collect()
+}
+
+#[test]
+fn edits_are_reflected_and_only_changed_objects_rebuilt() {
+    for mode in AccelMode::ALL {
+        let mut rng = rng(40);
+        let g = Gen {
+            clustered: 4,
+            scattered: 1,
+            grids: 1,
+            tris: 100,
+            prototypes: 2,
+            instances: 8,
+            mirror: true,
+        };
+        let mut model = random_model(&mut rng, &g);
+        let mut scene = model.to_scene(params(mode));
+        let all: Vec<u32> = model.objects.keys().copied().collect();
+        let (p0, p1) = (all[all.len() - 2], all[all.len() - 1]);
+
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &all, 1, "first commit");
+
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[], 2, "commit without edits");
+
+        // Move an instance: no object rebuilt.
+        let inst = *model.instances.keys().next().unwrap();
+        let xf = random_transform(&mut rng, SCENE_LO, SCENE_HI, true);
+        scene.set_instance_transform(inst, xf).unwrap();
+        assert_eq!(scene.instance_transform(inst).unwrap(), xf);
+        model.instances.get_mut(&inst).unwrap().1 = xf;
+        assert!(scene.needs_commit());
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[], 3, "moved instance");
+
+        // Edit a placed object's vertices and a prototype's.
+        for id in [all[1], p0] {
+            let v = jitter(&mut rng, &model.objects[&id].0);
+            scene.set_vertices(id, &v).unwrap();
+            model.objects.get_mut(&id).unwrap().0.positions = v;
+        }
+        assert_eq!(scene.mesh(all[1]).unwrap(), &model.objects[&all[1]].0);
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[all[1], p0], 4, "set_vertices");
+
+        // Replace a mesh (another triangle count).
+        let c = rand_in(&mut rng, SCENE_LO, SCENE_HI);
+        let mesh = soup(&mut rng, 37, c - 3.0, c + 3.0, 0.9);
+        scene.set_mesh(all[2], mesh.clone()).unwrap();
+        model.objects.get_mut(&all[2]).unwrap().0 = mesh;
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[all[2]], 5, "set_mesh");
+
+        // Remove a prototype: its instances go too.
+        let mut want: Vec<u32> = model
+            .instances
+            .iter()
+            .filter(|(_, (o, _))| *o == p1)
+            .map(|(i, _)| *i)
+            .collect();
+        let mut gone = scene.remove_object(p1).unwrap();
+        gone.sort_unstable();
+        want.sort_unstable();
+        assert_eq!(gone, want);
+        model.objects.remove(&p1);
+        model.instances.retain(|_, (o, _)| *o != p1);
+        for i in &gone {
+            assert_eq!(
+                scene.instance_transform(*i),
+                Err(Error::UnknownInstance(*i))
+            );
+        }
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[], 6, "remove_object");
+
+        // Remove a placed object.
+        scene.remove_object(all[0]).unwrap();
+        model.objects.remove(&all[0]);
+        model.instances.retain(|_, (o, _)| *o != all[0]);
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[], 7, "remove placed object");
+
+        // Remove an instance.
+        let inst = *model.instances.keys().last().unwrap();
+        scene.remove_instance(inst).unwrap();
+        model.instances.remove(&inst);
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[], 8, "remove_instance");
+
+        // Add objects, a prototype and instances after a commit.
+        let c = rand_in(&mut rng, SCENE_LO, SCENE_HI);
+        let a = model.add_object(&mut scene, soup(&mut rng, 60, c - 2.0, c + 2.0, 0.8), true);
+        let b = model.add_object(
+            &mut scene,
+            soup(&mut rng, 50, Vec3::splat(-2.0), Vec3::splat(2.0), 0.8),
+            false,
+        );
+        for obj in [b, b, a, p0] {
+            let xf = random_transform(&mut rng, SCENE_LO, SCENE_HI, true);
+            model.add_instance(&mut scene, obj, xf);
+        }
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[a, b], 9, "added objects");
+
+        // Several edits at once.
+        let v = jitter(&mut rng, &model.objects[&b].0);
+        scene.set_vertices(b, &v).unwrap();
+        model.objects.get_mut(&b).unwrap().0.positions = v;
+        let inst = *model.instances.keys().next().unwrap();
+        let xf = random_transform(&mut rng, SCENE_LO, SCENE_HI, true);
+        scene.set_instance_transform(inst, xf).unwrap();
+        model.instances.get_mut(&inst).unwrap().1 = xf;
+        let mesh = grid(&mut rng, 4, 3, Vec3::splat(2.0), Vec3::splat(9.0));
+        scene.set_mesh(a, mesh.clone()).unwrap();
+        model.objects.get_mut(&a).unwrap().0 = mesh;
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[a, b], 10, "several edits");
+    }
+}
+
+#[test]
+fn queries_answer_from_the_last_commit() {
+    let mut rng = rng(41);
+    let model = random_model(&mut rng, &Gen::default());
+    for mode in AccelMode::ALL {
+        let mut scene = model.to_scene(params(mode));
+        // Before the first commit: nothing is hit.
+        let world = model.world();
+        let rays = random_rays(&mut rng, &world, 200, SCENE_LO, SCENE_HI);
+        assert!(scene.needs_commit());
+        assert!(matches!(scene.accel(), Accel::Empty));
+        let mut hits = vec![None; rays.len()];
+        scene.intersect_batch(&rays, &mut hits);
+        let mut occ = vec![true; rays.len()];
+        scene.occluded_batch(&rays, &mut occ);
+        for (i, r) in rays.iter().enumerate() {
+            assert_eq!(scene.intersect(r), None);
+            assert!(!scene.occluded(r) && !occ[i] && hits[i].is_none());
+        }
+        scene.commit().unwrap();
+        // Edits without a commit leave the answers as committed.
+        let mut moved = model.clone();
+        let v = jitter(&mut rng, &moved.objects[&0].0);
+        scene.set_vertices(0, &v).unwrap();
+        moved.objects.get_mut(&0).unwrap().0.positions = v;
+        let xf = random_transform(&mut rng, SCENE_LO, SCENE_HI, true);
+        scene.set_instance_transform(0, xf).unwrap();
+        moved.instances.get_mut(&0).unwrap().1 = xf;
+        scene.remove_instance(1).unwrap();
+        moved.instances.remove(&1);
+        assert!(scene.needs_commit());
+        check_scene(
+            &scene,
+            &world,
+            &rays,
+            mode == AccelMode::Flat,
+            "uncommitted",
+        );
+        scene.commit().unwrap();
+        let world = moved.world();
+        check_scene(&scene, &world, &rays, mode == AccelMode::Flat, "committed");
+    }
+}
+
+#[test]
+fn edits_survive_mode_switches() {
+    let mut rng = rng(42);
+    let mut model = random_model(&mut rng, &Gen::default());
+    let mut scene = model.to_scene(params(AccelMode::TwoLevel));
+    let all: Vec<u32> = model.objects.keys().copied().collect();
+    let rep = scene.commit().unwrap();
+    verify(&scene, &model, &rep, &all, 20, "two-level");
+    // Edited while in flat mode: the object BVH must still be rebuilt later.
+    let v = jitter(&mut rng, &model.objects[&3].0);
+    scene.set_vertices(3, &v).unwrap();
+    model.objects.get_mut(&3).unwrap().0.positions = v;
+    scene.set_mode(AccelMode::Flat);
+    let rep = scene.commit().unwrap();
+    verify(&scene, &model, &rep, &[], 21, "flat after edit");
+    scene.set_mode(AccelMode::Rebraided);
+    let rep = scene.commit().unwrap();
+    verify(&scene, &model, &rep, &[3], 22, "rebraided after flat");
+    scene.set_mode(AccelMode::TwoLevel);
+    let rep = scene.commit().unwrap();
+    verify(&scene, &model, &rep, &[], 23, "two-level again");
+}
+
+#[test]
+fn empty_scenes_hit_nothing() {
+    let ray = Ray::infinite(Vec3::splat(-1.0), Vec3::ONE);
+    let empty_mesh = TriangleMesh::default();
+    let one = TriangleMesh::from_triangles(&[[Vec3::ZERO, Vec3::X, Vec3::Y]]).unwrap();
+    let degenerate = TriangleMesh::from_triangles(&[[Vec3::ZERO, Vec3::X, Vec3::X * 2.0]]).unwrap();
+    for mode in AccelMode::ALL {
+        let scenes: Vec<(&str, Scene)> = vec![
+            ("new", Scene::new()),
+            ("empty mesh", {
+                let mut s = Scene::new();
+                let o = s.add_object(empty_mesh.clone()).unwrap();
+                s.add_instance(o, Affine3A::from_scale(Vec3::splat(2.0)))
+                    .unwrap();
+                s
+            }),
+            ("prototype without instances", {
+                let mut s = Scene::new();
+                s.add_prototype(one.clone()).unwrap();
+                s
+            }),
+            ("degenerate triangle only", {
+                let mut s = Scene::new();
+                let o = s.add_object(degenerate.clone()).unwrap();
+                s.add_instance(o, Affine3A::from_translation(Vec3::Y))
+                    .unwrap();
+                s
+            }),
+            ("everything removed", {
+                let mut s = Scene::new();
+                let o = s.add_object(one.clone()).unwrap();
+                let i = s.add_instance(o, Affine3A::IDENTITY).unwrap();
+                s.set_mode(mode);
+                s.commit().unwrap();
+                assert!(
+                    s.intersect(&Ray::infinite(Vec3::new(0.2, 0.2, 1.0), -Vec3::Z))
+                        .is_some()
+                );
+                s.remove_instance(i).unwrap();
+                s.remove_object(o).unwrap();
+                s
+            }),
+        ];
+        for (what, mut s) in scenes {
+            s.set_mode(mode);
+            let rep = s.commit().unwrap();
+            assert_eq!(rep.mode, mode);
+            assert_eq!(s.intersect(&ray), None, "{mode:?} {what}");
+            assert!(!s.occluded(&ray), "{mode:?} {what}");
+            let through = Ray::infinite(Vec3::new(0.2, 0.2, 1.0), -Vec3::Z);
+            assert_eq!(s.intersect(&through), None, "{mode:?} {what}");
+            let st = s.stats();
+            assert!(st.sah_cost.is_finite(), "{mode:?} {what}: {st:?}");
+        }
+    }
+}
+
+fn bad_transforms() -> Vec<(&'static str, Affine3A)> {
+    vec![
+        (
+            "zero scale on one axis",
+            Affine3A::from_scale(Vec3::new(1.0, 0.0, 1.0)),
+        ),
+        ("zero scale", Affine3A::from_scale(Vec3::ZERO)),
+        (
+            "collapsed axes",
+            Affine3A::from_mat3(Mat3::from_cols(Vec3::X, Vec3::Y, Vec3::X + Vec3::Y)),
+        ),
+        (
+            "NaN translation",
+            Affine3A::from_translation(Vec3::new(0.0, f32::NAN, 0.0)),
+        ),
+        (
+            "NaN matrix",
+            Affine3A::from_scale(Vec3::new(1.0, f32::NAN, 1.0)),
+        ),
+        (
+            "infinite translation",
+            Affine3A::from_translation(Vec3::new(f32::INFINITY, 0.0, 0.0)),
+        ),
+        (
+            "infinite scale",
+            Affine3A::from_scale(Vec3::new(f32::INFINITY, 1.0, 1.0)),
+        ),
+        (
+            "negative infinite entry",
+            Affine3A::from_mat3(Mat3::from_cols(
+                Vec3::X,
+                Vec3::new(0.0, 1.0, f32::NEG_INFINITY),
+                Vec3::Z,
+            )),
+        ),
+    ]
+}
+
+#[test]
+fn degenerate_transforms_are_rejected() {
+    let mut rng = rng(43);
+    let mut s = Scene::new();
+    let o = s
+        .add_prototype(soup(&mut rng, 10, Vec3::ZERO, Vec3::ONE, 0.3))
+        .unwrap();
+    let good = Affine3A::from_scale(Vec3::new(-2.0, 0.5, 3.0));
+    let i = s.add_instance(o, good).unwrap();
+    for (what, xf) in bad_transforms() {
+        assert!(
+            matches!(s.add_instance(o, xf), Err(Error::InvalidTransform(_))),
+            "add_instance: {what}"
+        );
+        assert!(
+            matches!(
+                s.set_instance_transform(i, xf),
+                Err(Error::InvalidTransform(_))
+            ),
+            "set_instance_transform: {what}"
+        );
+        assert_eq!(s.instance_transform(i).unwrap(), good, "{what}");
+        assert_eq!(s.instance_count(), 1, "{what}");
+    }
+    // Mirroring and tiny but regular scales are fine.
+    s.add_instance(o, Affine3A::from_scale(Vec3::new(-1.0, -1.0, -1.0)))
+        .unwrap();
+    s.add_instance(o, Affine3A::from_scale(Vec3::splat(1e-3)))
+        .unwrap();
+    for mode in AccelMode::ALL {
+        s.set_mode(mode);
+        s.commit().unwrap();
+    }
+}
+
+#[test]
+fn unknown_ids_are_errors() {
+    let mut rng = rng(44);
+    let mut s = Scene::new();
+    let mesh = soup(&mut rng, 10, Vec3::ZERO, Vec3::ONE, 0.3);
+    let a = s.add_object(mesh.clone()).unwrap();
+    let b = s.add_object(mesh.clone()).unwrap();
+    let i = s.add_instance(b, Affine3A::IDENTITY).unwrap();
+    let j = s.add_instance(a, Affine3A::IDENTITY).unwrap();
+    let xf = Affine3A::IDENTITY;
+    let v = mesh.positions.clone();
+    for id in [b, 7, u32::MAX] {
+        if id == b {
+            s.remove_object(b).unwrap();
+        }
+        assert_eq!(s.add_instance(id, xf), Err(Error::UnknownObject(id)));
+        assert_eq!(s.remove_object(id), Err(Error::UnknownObject(id)));
+        assert_eq!(s.set_vertices(id, &v), Err(Error::UnknownObject(id)));
+        assert_eq!(s.set_mesh(id, mesh.clone()), Err(Error::UnknownObject(id)));
+        assert_eq!(
+            s.set_object_placed(id, false),
+            Err(Error::UnknownObject(id))
+        );
+        assert_eq!(s.mesh(id).err(), Some(Error::UnknownObject(id)));
+    }
+    // The instance of the removed object went with it.
+    for id in [i, 9, u32::MAX] {
+        assert_eq!(
+            s.set_instance_transform(id, xf),
+            Err(Error::UnknownInstance(id))
+        );
+        assert_eq!(s.remove_instance(id), Err(Error::UnknownInstance(id)));
+        assert_eq!(s.instance_transform(id), Err(Error::UnknownInstance(id)));
+    }
+    s.remove_instance(j).unwrap();
+    assert_eq!(s.remove_instance(j), Err(Error::UnknownInstance(j)));
+    // Ids are not reused: a new object gets a fresh id.
+    let c = s.add_object(mesh.clone()).unwrap();
+    assert!(c != a && c != b);
+    assert_eq!(s.object_ids().collect::<Vec<_>>(), vec![a, c]);
+    for mode in AccelMode::ALL {
+        s.set_mode(mode);
+        s.commit().unwrap();
+    }
+}
+
+#[test]
+fn invalid_meshes_are_rejected_and_leave_the_scene_unchanged() {
+    let mut rng = rng(45);
+    let good = soup(&mut rng, 10, Vec3::ZERO, Vec3::ONE, 0.3);
+    let mut nan = good.clone();
+    nan.positions[4].y = f32::NAN;
+    let mut inf = good.clone();
+    inf.positions[0].z = f32::INFINITY;
+    let mut oor = good.clone();
+    oor.indices[3][1] = good.positions.len() as u32;
+    let mut s = Scene::with_params(params(AccelMode::Rebraided));
+    let o = s.add_object(good.clone()).unwrap();
+    s.commit().unwrap();
+    for (what, m, bad) in [("NaN", &nan, 4usize), ("inf", &inf, 0)] {
+        for r in [
+            s.add_object(m.clone()).map(|_| ()),
+            s.add_prototype(m.clone()).map(|_| ()),
+            s.set_mesh(o, m.clone()),
+            s.set_vertices(o, &m.positions),
+        ] {
+            // NaN != NaN: compare the variant and index.
+            match r {
+                Err(Error::NonFiniteVertex { index, .. }) => assert_eq!(index, bad, "{what}"),
+                _ => panic!("{what}: {r:?}"),
+            }
+        }
+    }
+    let want = Err(Error::IndexOutOfRange {
+        triangle: 3,
+        vertex: good.positions.len() as u32,
+        vertex_count: good.positions.len(),
+    });
+    assert_eq!(s.add_object(oor.clone()).map(|_| ()), want);
+    assert_eq!(s.add_prototype(oor.clone()).map(|_| ()), want);
+    assert_eq!(s.set_mesh(o, oor.clone()), want);
+    assert_eq!(
+        s.set_vertices(o, &good.positions[1..]),
+        Err(Error::VertexCountMismatch {
+            expected: good.positions.len(),
+            got: good.positions.len() - 1
+        })
+    );
+    // Nothing changed.
+    assert_eq!(s.object_count(), 1);
+    assert_eq!(s.mesh(o).unwrap(), &good);
+    assert!(!s.needs_commit(), "a rejected edit is no edit");
+    let rep = s.commit().unwrap();
+    assert!(rep.objects_rebuilt.is_empty(), "{rep:?}");
+}
+
+/// BUG (src/scene/mod.rs, `Scene::needs_commit`): a flat-mode commit does
+/// not clear the objects' `dirty` flags (only the two-level path does, when
+/// it rebuilds the object BVHs), so `needs_commit()` stays true after every
+/// flat commit although the flat BVH includes every edit ("True when there
+/// are edits the last commit does not include"). Ignored so that the suite
+/// stays green until the owner fixes it: run with `--ignored`.
+#[test]
+#[ignore = "BUG in src/scene: needs_commit() stays true after a flat commit"]
+fn needs_commit_is_false_after_a_flat_commit() {
+    let mut s = Scene::with_params(params(AccelMode::Flat));
+    s.add_object(TriangleMesh::from_triangles(&[[Vec3::ZERO, Vec3::X, Vec3::Y]]).unwrap())
+        .unwrap();
+    s.commit().unwrap();
+    assert!(!s.needs_commit(), "needs_commit() after a flat commit");
+}
