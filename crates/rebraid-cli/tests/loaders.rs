@@ -330,11 +330,11 @@ fn ply_ascii_and_binary_cubes() {
 
 fn glb(json: &str, bin: &[u8]) -> Vec<u8> {
     let mut j = json.as_bytes().to_vec();
-    while j.len() % 4 != 0 {
+    while !j.len().is_multiple_of(4) {
         j.push(b' ');
     }
     let mut b = bin.to_vec();
-    while b.len() % 4 != 0 {
+    while !b.len().is_multiple_of(4) {
         b.push(0);
     }
     let total = 12 + 8 + j.len() + if b.is_empty() { 0 } else { 8 + b.len() };
@@ -453,4 +453,222 @@ fn glb_node_hierarchy_instances_and_flattening() {
 
     let per_prim = load_scene(&p, &opts(Split::Material, false)).unwrap();
     assert_eq!(names(&per_prim), vec![("tri/steel", 1), ("strip/brass", 2)]);
+}
+
+// ---------------------------------------------------------------------------
+// Malformed files: the right error kind, naming the file and the line or
+// element.
+
+/// Load `bytes` saved as `name` and expect an error whose message contains
+/// the file name and every one of `needles`.
+fn load_err(name: &str, bytes: &[u8], needles: &[&str]) -> LoadError {
+    let dir = tempfile::tempdir().unwrap();
+    let p = write(dir.path(), name, bytes);
+    let e = load_scene(&p, &LoadOptions::default()).expect_err(name);
+    let msg = e.to_string();
+    assert!(msg.contains(name), "{msg:?} does not name {name}");
+    for n in needles {
+        assert!(msg.contains(n), "{msg:?} does not contain {n:?}");
+    }
+    assert_eq!(e.file(), p);
+    e
+}
+
+#[test]
+fn unknown_extension_and_missing_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = write(dir.path(), "scene.stl", b"solid");
+    let e = load_scene(&p, &LoadOptions::default()).unwrap_err();
+    assert!(matches!(e, LoadError::UnknownExtension { .. }), "{e}");
+    assert!(e.to_string().contains("scene.stl") && e.to_string().contains("stl"));
+    let e = load_scene(&dir.path().join("nowhere.obj"), &LoadOptions::default()).unwrap_err();
+    assert!(matches!(e, LoadError::Io { .. }), "{e}");
+    assert!(e.to_string().contains("nowhere.obj"));
+}
+
+#[test]
+fn obj_errors_name_the_line() {
+    let v3 = "v 0 0 0\nv 1 0 0\nv 0 1 0\n";
+    type Case = (String, fn(&LoadError) -> bool, &'static str);
+    let cases: Vec<Case> = vec![
+        (
+            format!("{v3}f 1 2 9\n"),
+            |e| matches!(e, LoadError::BadIndex { .. }),
+            "line 4",
+        ),
+        (
+            format!("{v3}f 1 2 0\n"),
+            |e| matches!(e, LoadError::BadIndex { .. }),
+            "line 4",
+        ),
+        (
+            format!("{v3}\n\nf -1 -2 -4\n"),
+            |e| matches!(e, LoadError::BadIndex { .. }),
+            "line 6",
+        ),
+        (
+            format!("{v3}f 1 2 x\n"),
+            |e| matches!(e, LoadError::Syntax { .. }),
+            "line 4",
+        ),
+        (
+            format!("{v3}f 1 2\n"),
+            |e| matches!(e, LoadError::Syntax { .. }),
+            "line 4",
+        ),
+        (
+            format!("v 0 0 0\nv nan 0 0\n{v3}f 1 2 3\n"),
+            |e| matches!(e, LoadError::NonFinite { .. }),
+            "line 2",
+        ),
+        (
+            format!("# big\nv 1e39 0 0\n{v3}"),
+            |e| matches!(e, LoadError::NonFinite { .. }),
+            "line 2",
+        ),
+        (
+            "v 1 2\nf 1 1 1\n".to_string(),
+            |e| matches!(e, LoadError::Syntax { .. }),
+            "line 1",
+        ),
+        (
+            format!("{v3}f 1 2 3\nv 0 0"),
+            |e| matches!(e, LoadError::Truncated { .. }),
+            "line 5",
+        ),
+        (
+            format!("{v3}cstype bspline\n"),
+            |e| matches!(e, LoadError::Unsupported { .. }),
+            "line 4",
+        ),
+        (
+            format!("{v3}\u{1}\u{2}garbage\n"),
+            |e| matches!(e, LoadError::Syntax { .. }),
+            "line 4",
+        ),
+        (
+            v3.to_string(),
+            |e| matches!(e, LoadError::Unsupported { .. }),
+            "no triangle",
+        ),
+    ];
+    for (i, (text, kind, needle)) in cases.iter().enumerate() {
+        let e = load_err(&format!("bad{i}.obj"), text.as_bytes(), &[needle]);
+        assert!(kind(&e), "case {i}: wrong kind: {e}");
+        if needle.starts_with("line") {
+            let line: usize = needle[5..].parse().unwrap();
+            assert_eq!(e.location(), Some(&Location::Line(line)), "case {i}");
+        }
+    }
+}
+
+#[test]
+fn ply_errors_name_the_line_or_element() {
+    let good = cube_ascii_ply();
+    // Header is 11 lines, vertices on lines 12..=19, faces on 20..=25.
+    let bad_index = good.replace("4 1 2 6 5\n", "4 1 2 6 8\n");
+    let e = load_err("bad_index.ply", bad_index.as_bytes(), &["line 23"]);
+    assert!(matches!(e, LoadError::BadIndex { .. }), "{e}");
+
+    let truncated = &good[..good.rfind("4 3 0").unwrap()];
+    let e = load_err("truncated.ply", truncated.as_bytes(), &["line 25"]);
+    assert!(matches!(e, LoadError::Truncated { .. }), "{e}");
+
+    // Finite as a double, infinite as the f32 the mesh stores.
+    let nan = good.replacen("1 1 0 255", "1 1e39 0 255", 1);
+    let e = load_err("nan.ply", nan.as_bytes(), &["line 14"]);
+    assert!(matches!(e, LoadError::NonFinite { .. }), "{e}");
+
+    let syntax = good.replacen("1 1 0 255", "1 one 0 255", 1);
+    let e = load_err("syntax.ply", syntax.as_bytes(), &["line 14"]);
+    assert!(matches!(e, LoadError::Syntax { .. }), "{e}");
+
+    let header = good.replace("property double y\n", "property double\n");
+    let e = load_err("header.ply", header.as_bytes(), &["line 6"]);
+    assert!(matches!(e, LoadError::Syntax { .. }), "{e}");
+
+    let points = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n";
+    let e = load_err("points.ply", points.as_bytes(), &["face"]);
+    assert!(matches!(e, LoadError::Unsupported { .. }), "{e}");
+
+    let bin = cube_binary_ply(false);
+    let e = load_err("cut.ply", &bin[..bin.len() - 10], &["element `face` 5"]);
+    assert!(matches!(e, LoadError::Truncated { .. }), "{e}");
+
+    let mut bin = cube_binary_ply(false);
+    let at = bin.windows(10).position(|w| w == b"end_header").unwrap() + 11;
+    bin[at + 12 * 3..at + 12 * 3 + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    let e = load_err("nan_le.ply", &bin, &["element `vertex` 3"]);
+    assert!(matches!(e, LoadError::NonFinite { .. }), "{e}");
+
+    let mut bin = cube_binary_ply(true);
+    let n = bin.len();
+    bin[n - 4..].copy_from_slice(&100u32.to_be_bytes());
+    let e = load_err(
+        "bad_index_be.ply",
+        &bin,
+        &["element `face` 5", "vertex 100"],
+    );
+    assert!(matches!(e, LoadError::BadIndex { .. }), "{e}");
+}
+
+#[test]
+fn gltf_errors_name_the_element() {
+    let buf = glb_buffer(&QUAD, [0, 1, 2]);
+    // An index past the positions.
+    let e = load_err(
+        "bad_index.glb",
+        &glb(
+            &tiny_gltf_json(3, "", "[0, 0, 0]"),
+            &glb_buffer(&QUAD, [0, 1, 7]),
+        ),
+        &["mesh 0", "primitive 0"],
+    );
+    assert!(matches!(e, LoadError::BadIndex { .. }), "{e}");
+    // An accessor reaching past its buffer view.
+    let e = load_err(
+        "overrun.glb",
+        &glb(&tiny_gltf_json(4, "", "[0, 0, 0]"), &buf),
+        &["mesh 0", "primitive 0"],
+    );
+    assert!(matches!(e, LoadError::Truncated { .. }), "{e}");
+    // A non-finite position.
+    let mut nan = QUAD;
+    nan[1][1] = f32::NAN;
+    let e = load_err(
+        "nan.glb",
+        &glb(
+            &tiny_gltf_json(3, "", "[0, 0, 0]"),
+            &glb_buffer(&nan, [0, 1, 2]),
+        ),
+        &["mesh 0"],
+    );
+    assert!(matches!(e, LoadError::NonFinite { .. }), "{e}");
+    // Transforms that overflow once composed.
+    let huge = glb(
+        &tiny_gltf_json(3, r#", "scale": [1e30, 1e30, 1e30]"#, "[0, 0, 0]")
+            .replace(r#""scale": [2, 1, 1]"#, r#""scale": [1e30, 1, 1]"#),
+        &buf,
+    );
+    let e = load_err("huge.glb", &huge, &["node 1", "stretched"]);
+    assert!(matches!(e, LoadError::NonFinite { .. }), "{e}");
+    // A cut file.
+    let whole = glb(&tiny_gltf_json(3, "", "[0, 0, 0]"), &buf);
+    let e = load_err("cut.glb", &whole[..whole.len() - 20], &[]);
+    assert!(matches!(e, LoadError::Truncated { .. }), "{e}");
+    // Not glTF at all.
+    let e = load_err("junk.gltf", b"{ not json", &[]);
+    assert!(matches!(e, LoadError::Syntax { .. }), "{e}");
+    // A zero scale is no error: the placement is skipped with a warning.
+    let dir = tempfile::tempdir().unwrap();
+    let flat = tiny_gltf_json(3, "", "[0, 0, 0]")
+        .replace(r#""scale": [2, 1, 1]"#, r#""scale": [0, 1, 1]"#);
+    let p = write(dir.path(), "zero.glb", &glb(&flat, &buf));
+    let l = load_scene_with_warnings(&p, &LoadOptions::default()).unwrap();
+    assert_eq!(l.scene.instances.len(), 1);
+    assert!(
+        l.warnings.iter().any(|w| w.contains("singular")),
+        "{:?}",
+        l.warnings
+    );
 }

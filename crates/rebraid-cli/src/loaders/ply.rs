@@ -84,7 +84,7 @@ pub fn parse_ply(bytes: &[u8], file: &Path, _opts: &LoadOptions) -> Result<Scene
     // may claim billions of elements.
     let cap = |n: usize| n.min(1 << 20);
     let mut positions: Vec<Vec3> = Vec::with_capacity(cap(nv));
-    let mut indices: Vec<[u32; 3]> = Vec::with_capacity(cap(face_def.count * 2));
+    let mut indices: Vec<[u32; 3]> = Vec::with_capacity(cap(face_def.count.saturating_mul(2)));
     let mut text = String::new();
 
     for (name, def) in &header.elements {
