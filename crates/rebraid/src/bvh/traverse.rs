@@ -47,8 +47,11 @@ impl BoxRay {
         let lo = Vec3::select(in_plane, Vec3::NEG_INFINITY, t0.min(t1));
         let hi = Vec3::select(in_plane, Vec3::INFINITY, t0.max(t1));
         let near = lo.x.max(lo.y).max(lo.z).max(t_min);
-        let far = hi.x.min(hi.y).min(hi.z) * ROBUST_FAR;
-        let far = far.min(t_max);
+        // Pad after clamping to t_max: the entry distance of a box whose
+        // surface holds a hit at t_max (a shared vertex or edge on the box's
+        // face) can round above t_max while a neighbour in that box is hit a
+        // few ulps before it; culling that box would lose the closest hit.
+        let far = hi.x.min(hi.y).min(hi.z).min(t_max) * ROBUST_FAR;
         if near <= far { near } else { f32::INFINITY }
     }
 }
@@ -152,7 +155,7 @@ impl Bvh {
                 }
                 sp -= 1;
                 let (node, entry) = stack[sp];
-                if entry <= t_max {
+                if entry <= t_max * ROBUST_FAR {
                     current = node;
                     break;
                 }
