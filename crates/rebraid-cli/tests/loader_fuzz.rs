@@ -214,6 +214,18 @@ fn fuzz(what: &str, f: fn(&[u8]), seeds: &[Vec<u8>], tokens: &[&[u8]], salt: u64
     }
 }
 
+/// Regression: a binary element with no properties and a huge count used to
+/// spin through the count without reading a byte.
+#[test]
+fn ply_huge_empty_binary_element_is_quick() {
+    let t = std::time::Instant::now();
+    let data = b"ply\nformat binary_little_endian 1.0\nelement junk 18446744073709551615\n\
+        element vertex 0\nproperty float x\nproperty float y\nproperty float z\n\
+        element face 0\nproperty list uchar int vertex_indices\nend_header\n";
+    let _ = parse_ply(data, Path::new("empty.ply"), &LoadOptions::default());
+    assert!(t.elapsed().as_secs() < 5);
+}
+
 #[test]
 fn obj_parser_survives_random_and_mutated_input() {
     fuzz("OBJ", run_obj, &obj_seeds(), OBJ_TOKENS, 0x0b1);

@@ -10,7 +10,8 @@
 //! instead of one hash map per element. Any scalar type is accepted for the
 //! coordinates (float and double usually) and any integer list type for the
 //! indices. Other elements and properties (normals, colours, edges...) are
-//! read and dropped.
+//! read and dropped. A file without a single triangle (a point cloud) is
+//! rejected as unsupported.
 
 use std::io::{BufRead, Cursor};
 use std::path::Path;
@@ -88,6 +89,11 @@ pub fn parse_ply(bytes: &[u8], file: &Path, _opts: &LoadOptions) -> Result<Scene
     let mut text = String::new();
 
     for (name, def) in &header.elements {
+        // A binary element without properties occupies no bytes: skip it
+        // rather than loop over a count that may be in the billions.
+        if def.properties.is_empty() && header.encoding != Encoding::Ascii {
+            continue;
+        }
         for i in 0..def.count {
             line += 1;
             let at = || match header.encoding {
@@ -162,6 +168,9 @@ pub fn parse_ply(bytes: &[u8], file: &Path, _opts: &LoadOptions) -> Result<Scene
         }
     }
 
+    if indices.is_empty() {
+        return Err(unsupported("no triangle faces".into()));
+    }
     let name = file
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
