@@ -259,8 +259,8 @@ pub fn triangle_t(mesh: &TriangleMesh, prim: u32, ray: &Ray) -> Option<f32> {
 }
 
 /// Check one ray's BVH answers against the brute-force reference: the same
-/// closest `t` (bit for bit: both run the same triangle test on the same
-/// vertices), the same primitive unless the other one is hit at exactly that
+/// closest `t` (bit for bit but for the sign of zero: both run the same
+/// triangle test on the same vertices), the same primitive unless the other one is hit at exactly that
 /// `t` too (a tie), the same barycentrics and normal for the same primitive,
 /// and the same occlusion answer. Returns the tally of this one ray.
 pub fn check_ray(mesh: &TriangleMesh, bvh: &MeshBvh, ray: &Ray) -> Result<Tally, String> {
@@ -274,14 +274,14 @@ pub fn check_ray(mesh: &TriangleMesh, bvh: &MeshBvh, ray: &Ray) -> Result<Tally,
         (None, None) => {}
         (Some(g), Some(w)) => {
             tally.hits = 1;
-            if g.t.to_bits() != w.t.to_bits() {
+            if g.t != w.t {
                 return Err(format!(
                     "closest t differs: bvh {g:?}, brute force {w:?}, ray {ray:?}"
                 ));
             }
             if g.prim_id != w.prim_id {
                 tally.ties = 1;
-                if triangle_t(mesh, g.prim_id, ray).map(f32::to_bits) != Some(w.t.to_bits()) {
+                if triangle_t(mesh, g.prim_id, ray) != Some(w.t) {
                     return Err(format!(
                         "bvh prim {} is not a tie: {g:?} vs {w:?}, ray {ray:?}",
                         g.prim_id
