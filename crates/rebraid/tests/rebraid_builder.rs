@@ -291,13 +291,16 @@ fn builder_rejects_bad_refs_and_accepts_no_refs() {
     let (tree, refs, st) = build_top_level(&[], src, &RebraidParams::default()).unwrap();
     assert!(tree.nodes.is_empty() && refs.is_empty() && st.refs_final == 0);
     let obj = t.objects[0].as_ref().unwrap();
-    let good = BuildRef {
-        bounds: obj.mesh.bvh.bounds(),
-        object: 0,
-        node: 0,
-        instance: INVALID_ID,
-        prims: obj.mesh.len() as u32,
-    };
+    // Built field by field from zeroes (every field is plain numbers), so
+    // that the test does not break when the builder adds a field.
+    // SAFETY: BuildRef is `repr(C)` plain data (f32 and u32 fields); all
+    // zeroes is a valid value.
+    let mut good: BuildRef = unsafe { std::mem::zeroed() };
+    good.bounds = obj.mesh.bvh.bounds();
+    good.object = 0;
+    good.node = 0;
+    good.instance = INVALID_ID;
+    good.prims = obj.mesh.len() as u32;
     assert!(build_top_level(&[good], src, &RebraidParams::default()).is_ok());
     let bad = [
         BuildRef {
