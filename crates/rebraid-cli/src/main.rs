@@ -74,6 +74,12 @@ struct SceneOpts {
     /// Do not open object BVHs through instance transforms (Embree's behaviour).
     #[arg(long)]
     no_open_instances: bool,
+    /// Re-braiding: opening rounds per build step (the paper: 1).
+    #[arg(long)]
+    open_rounds: Option<usize>,
+    /// Largest leaf of object (and flat) BVHs.
+    #[arg(long)]
+    max_leaf: Option<u32>,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -123,6 +129,13 @@ impl SceneOpts {
             }
         }
         r.open_instances = !self.no_open_instances;
+        if let Some(k) = self.open_rounds {
+            r.open_rounds = k;
+        }
+        if let Some(m) = self.max_leaf {
+            p.object_build.max_leaf_size = m;
+        }
+        p.object_build.check()?;
         r.check()?;
         Ok(p)
     }
@@ -518,8 +531,8 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
             overlap
         );
         println!(
-            "  {:<10} {:>10} {:>10} {:>9} {:>10} {:>10} {:>9} {:>9}",
-            "mode", "build ms", "SAH", "MB", "top nodes", "refs", "opened", "capacity"
+            "  {:<10} {:>10} {:>10} {:>9} {:>10} {:>9} {:>10} {:>9} {:>9}",
+            "mode", "build ms", "SAH", "MB", "top nodes", "top depth", "refs", "opened", "capacity"
         );
         let mut per_mode = Vec::new();
         for &mode in &modes {
@@ -528,12 +541,13 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
             let st = scene.stats();
             let top = st.top.clone().unwrap_or_default();
             println!(
-                "  {:<10} {:>10.1} {:>10.2} {:>9.1} {:>10} {:>10} {:>9} {:>9}",
+                "  {:<10} {:>10.1} {:>10.2} {:>9.1} {:>10} {:>9} {:>10} {:>9} {:>9}",
                 mode.name(),
                 rep.total_ms,
                 st.sah_cost,
                 st.bytes as f64 / 1048576.0,
                 st.top_nodes,
+                st.top_depth,
                 top.refs_final,
                 top.nodes_opened,
                 top.capacity
@@ -546,6 +560,7 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
                 "sah_cost": st.sah_cost,
                 "bytes": st.bytes,
                 "top_nodes": st.top_nodes,
+                "top_depth": st.top_depth,
                 "refs_initial": top.refs_initial,
                 "refs_final": top.refs_final,
                 "refs_opened": top.nodes_opened,

@@ -21,7 +21,7 @@ pub struct RaySets {
 
 /// The point light: above the centre, inside the scene box.
 pub fn light_position(bounds: &Aabb, up: Vec3) -> Vec3 {
-    bounds.center() + up * (0.45 * bounds.extent().dot(up.abs()))
+    bounds.center() + up * (0.25 * bounds.extent().dot(up.abs()))
 }
 
 /// Offset for secondary-ray origins, relative to the scene size.

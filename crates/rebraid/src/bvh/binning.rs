@@ -59,18 +59,40 @@ impl BinMapping {
 }
 
 /// Per-axis bins: bounds and weight (primitive count) of each bin.
+///
+/// `N` is the capacity; builders pick the smallest of 8, 16 or 32 that holds
+/// the bins a range needs (see [`with_bins`]), because most nodes of a tree
+/// are small and clearing and sweeping 32 bins for them dominated build
+/// time (measured: 38% of a flat build in `best_split` before this).
 #[derive(Clone, Debug)]
-pub struct Bins {
-    pub bounds: [[Aabb; MAX_BINS]; 3],
-    pub weight: [[u64; MAX_BINS]; 3],
+pub struct Bins<const N: usize = MAX_BINS> {
+    pub bounds: [[Aabb; N]; 3],
+    pub weight: [[u64; N]; 3],
 }
 
-impl Default for Bins {
+impl<const N: usize> Default for Bins<N> {
     fn default() -> Self {
         Self {
-            bounds: [[Aabb::EMPTY; MAX_BINS]; 3],
-            weight: [[0; MAX_BINS]; 3],
+            bounds: [[Aabb::EMPTY; N]; 3],
+            weight: [[0; N]; 3],
         }
+    }
+}
+
+/// Something that bins a range and reports its best split, for any bin capacity.
+pub trait BinRange {
+    fn run<const N: usize>(&self, map: &BinMapping) -> Option<SplitCandidate>;
+}
+
+/// Run `f` with the smallest bin capacity that holds `map.bins`.
+#[inline]
+pub fn with_bins<F: BinRange>(map: &BinMapping, f: &F) -> Option<SplitCandidate> {
+    if map.bins <= 8 {
+        f.run::<8>(map)
+    } else if map.bins <= 16 {
+        f.run::<16>(map)
+    } else {
+        f.run::<MAX_BINS>(map)
     }
 }
 
@@ -88,7 +110,7 @@ pub struct SplitCandidate {
     pub right_weight: u64,
 }
 
-impl Bins {
+impl<const N: usize> Bins<N> {
     #[inline(always)]
     pub fn add(&mut self, map: &BinMapping, bounds: &Aabb, centroid: Vec3, weight: u64) {
         let b = map.bins3(centroid);
@@ -101,7 +123,7 @@ impl Bins {
 
     /// Merge another set of bins (exact: unions and integer sums), so that a
     /// chunked parallel binning gives the same result as a sequential one.
-    pub fn merge(&mut self, o: &Bins, bins: usize) {
+    pub fn merge(&mut self, o: &Bins<N>, bins: usize) {
         for axis in 0..3 {
             for i in 0..bins {
                 self.bounds[axis][i] = self.bounds[axis][i].union(o.bounds[axis][i]);
@@ -115,9 +137,10 @@ impl Bins {
     pub fn best_split(&self, map: &BinMapping) -> Option<SplitCandidate> {
         let n = map.bins;
         let mut best: Option<SplitCandidate> = None;
-        let mut right_area = [0.0f32; MAX_BINS];
-        let mut right_weight = [0u64; MAX_BINS];
-        let mut right_box = [Aabb::EMPTY; MAX_BINS];
+        debug_assert!(n <= N);
+        let mut right_area = [0.0f32; N];
+        let mut right_weight = [0u64; N];
+        let mut right_box = [Aabb::EMPTY; N];
         for axis in 0..3 {
             if !map.axis_usable(axis) {
                 continue;
@@ -170,7 +193,7 @@ mod tests {
             .collect();
         let cb = boxes.iter().fold(Aabb::EMPTY, |b, x| b.grow(x.center()));
         let map = BinMapping::new(&cb, 16);
-        let mut bins = Bins::default();
+        let mut bins = Bins::<16>::default();
         for b in &boxes {
             bins.add(&map, b, b.center(), 1);
         }

@@ -16,7 +16,7 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
-use super::binning::{BinMapping, Bins, MAX_BINS};
+use super::binning::{BinMapping, BinRange, Bins, MAX_BINS, SplitCandidate, with_bins};
 use super::{Bvh, BvhNode};
 use crate::{Aabb, Error};
 
@@ -187,23 +187,32 @@ fn bounds_of(ctx: &Ctx, prims: &[u32]) -> (Aabb, Aabb) {
     })
 }
 
-fn bin_range(ctx: &Ctx, prims: &[u32], map: &BinMapping) -> Bins {
-    let bin_chunk = |chunk: &[u32]| {
-        let mut bins = Bins::default();
-        for &p in chunk {
-            bins.add(map, &ctx.boxes[p as usize], ctx.centroids[p as usize], 1);
+/// Bins the primitives of a range (in parallel chunks when long).
+struct RangeBinner<'a, 'b> {
+    ctx: &'a Ctx<'b>,
+    prims: &'a [u32],
+}
+
+impl BinRange for RangeBinner<'_, '_> {
+    fn run<const N: usize>(&self, map: &BinMapping) -> Option<SplitCandidate> {
+        let ctx = self.ctx;
+        let bin_chunk = |chunk: &[u32]| {
+            let mut bins = Bins::<N>::default();
+            for &p in chunk {
+                bins.add(map, &ctx.boxes[p as usize], ctx.centroids[p as usize], 1);
+            }
+            bins
+        };
+        if self.prims.len() >= PARALLEL_BINNING_MIN {
+            let parts: Vec<Bins<N>> = self.prims.par_chunks(CHUNK).map(bin_chunk).collect();
+            let mut all = Bins::<N>::default();
+            for p in &parts {
+                all.merge(p, map.bins);
+            }
+            all.best_split(map)
+        } else {
+            bin_chunk(self.prims).best_split(map)
         }
-        bins
-    };
-    if prims.len() >= PARALLEL_BINNING_MIN {
-        let parts: Vec<Bins> = prims.par_chunks(CHUNK).map(bin_chunk).collect();
-        let mut all = Bins::default();
-        for p in &parts {
-            all.merge(p, map.bins);
-        }
-        all
-    } else {
-        bin_chunk(prims)
     }
 }
 
@@ -314,8 +323,7 @@ fn build_node(
     let split = if use_sah {
         // Small ranges need no more bins than primitives.
         let map = BinMapping::new(&cbounds, p.bins.min(n.max(4)));
-        let bins = bin_range(ctx, prims, &map);
-        bins.best_split(&map).map(|s| (map, s))
+        with_bins(&map, &RangeBinner { ctx, prims }).map(|s| (map, s))
     } else {
         None
     };

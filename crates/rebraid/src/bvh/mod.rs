@@ -10,7 +10,7 @@ mod validate;
 pub use build::{BuildParams, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh};
 pub use node::BvhNode;
 pub use stats::{BvhStats, SahCosts};
-pub use traverse::{BoxRay, TRAVERSAL_STACK, TraversalCounters};
+pub use traverse::{BoxRay, TRAVERSAL_STACK, TraversalCounters, TraversalStack};
 
 /// A binary BVH over primitives known only by index.
 ///

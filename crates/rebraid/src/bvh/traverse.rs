@@ -56,6 +56,11 @@ impl BoxRay {
     }
 }
 
+/// The stack of a traversal: (node, entry distance) pairs. Callers that
+/// traverse many subtrees per ray (the top level entering object BVHs) keep
+/// one and pass it to every [`Bvh::traverse_from`], so no per-subtree setup.
+pub type TraversalStack = [(u32, f32); TRAVERSAL_STACK];
+
 /// Work counters of one traversal, for heat maps and statistics.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct TraversalCounters {
@@ -85,15 +90,17 @@ impl Bvh {
     {
         match self.nodes.first() {
             Some(root) if ray.hit_node(root, t_min, t_max) < f32::INFINITY => {
-                self.traverse_from(0, ray, t_min, t_max, counters, leaf)
+                let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
+                self.traverse_from(0, ray, t_min, t_max, &mut stack, counters, leaf)
             }
             _ => {}
         }
     }
 
     /// [`Bvh::traverse`] of the subtree rooted at node `start` (a top-level
-    /// leaf of a re-braided tree enters an object BVH this way). The caller
-    /// has already tested `start`'s box, so it is not tested again.
+    /// leaf of a re-braided tree enters an object BVH this way), using the
+    /// caller's `stack`. The caller has already tested `start`'s box, so it
+    /// is not tested again.
     #[inline(always)]
     pub fn traverse_from<F>(
         &self,
@@ -101,6 +108,7 @@ impl Bvh {
         ray: &BoxRay,
         t_min: f32,
         mut t_max: f32,
+        stack: &mut TraversalStack,
         counters: &mut TraversalCounters,
         mut leaf: F,
     ) where
@@ -110,7 +118,6 @@ impl Bvh {
         if start as usize >= nodes.len() {
             return;
         }
-        let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
         let mut sp = 0usize;
         let mut current = start;
         loop {

@@ -378,7 +378,9 @@ impl Scene {
 
     /// True when there are edits the last commit does not include.
     pub fn needs_commit(&self) -> bool {
-        self.changed || self.objects.iter().flatten().any(|o| o.dirty)
+        // Every edit sets `changed`; `dirty` only says an object's BVH is
+        // stale, which a flat commit leaves so (it builds no object BVHs).
+        self.changed
     }
 
     /// The committed acceleration structure.
@@ -500,6 +502,7 @@ impl Scene {
                     node: 0,
                     instance: INVALID_ID,
                     prims: bvh.mesh.len() as u32,
+                    cost: bvh.subtree_cost[0],
                 });
             }
         }
@@ -513,6 +516,7 @@ impl Scene {
                     node: 0,
                     instance: id as u32,
                     prims: bvh.mesh.len() as u32,
+                    cost: bvh.subtree_cost[0],
                 });
             }
         }
@@ -612,6 +616,7 @@ impl Scene {
                     .sum();
                 s.bytes = object_bytes + t.top_bytes();
                 s.top_nodes = t.tree.nodes.len();
+                s.top_depth = t.tree.stats(SahCosts::default()).max_depth;
                 s.top = Some(t.build_stats.clone());
             }
         }
@@ -631,6 +636,8 @@ pub struct SceneStats {
     /// Bytes of every node, index and triangle array of the structure.
     pub bytes: usize,
     pub top_nodes: usize,
+    /// Depth of the top-level tree (root = 1).
+    pub top_depth: u32,
     pub top: Option<TopLevelBuildStats>,
     pub flat: Option<BvhStats>,
 }

@@ -15,7 +15,7 @@ use std::sync::Arc;
 use glam::Affine3A;
 use rayon::prelude::*;
 
-use crate::bvh::{BoxRay, Bvh, BvhNode, SahCosts, TraversalCounters};
+use crate::bvh::{BoxRay, Bvh, BvhNode, SahCosts, TRAVERSAL_STACK, TraversalCounters};
 use crate::transform::{transform_box, transform_normal};
 use crate::triangle::WatertightRay;
 use crate::{Aabb, Hit, INVALID_ID, MeshBvh, Ray};
@@ -29,25 +29,40 @@ pub struct ObjectBvh {
     pub mesh: MeshBvh,
     /// Primitives under each node, indexed like `mesh.bvh.nodes`.
     pub subtree_prims: Vec<u32>,
+    /// Expected SAH cost of each node's subtree for a ray that enters the
+    /// node's box (traversal and intersection cost 1).
+    pub subtree_cost: Vec<f32>,
 }
 
 impl ObjectBvh {
     pub fn new(mesh: MeshBvh) -> Self {
         let nodes = &mesh.bvh.nodes;
         let mut counts = vec![0u32; nodes.len()];
+        let mut cost = vec![0f32; nodes.len()];
         // Children are stored after their parent, so a reverse sweep sees
         // both children before the parent.
         for i in (0..nodes.len()).rev() {
             let n = &nodes[i];
-            counts[i] = if n.is_leaf() {
-                n.count
+            if n.is_leaf() {
+                counts[i] = n.count;
+                cost[i] = n.count as f32;
             } else {
-                counts[n.index as usize] + counts[n.index as usize + 1]
-            };
+                let (l, r) = (n.index as usize, n.index as usize + 1);
+                counts[i] = counts[l] + counts[r];
+                let a = n.bounds().half_area();
+                cost[i] = if a > 0.0 {
+                    1.0 + (nodes[l].bounds().half_area() * cost[l]
+                        + nodes[r].bounds().half_area() * cost[r])
+                        / a
+                } else {
+                    1.0 + cost[l] + cost[r]
+                };
+            }
         }
         Self {
             mesh,
             subtree_prims: counts,
+            subtree_cost: cost,
         }
     }
 
@@ -142,6 +157,7 @@ impl TopLevelAccel {
         let mut cached: Option<(u32, BoxRay, WatertightRay)> = None;
         let tree = &self.tree;
         let mut inner_counters = TraversalCounters::default();
+        let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
         tree.traverse(&bray, t_min, ray.t_max, counters, |leaf, t_max| {
             for ri in leaf.prim_range() {
                 let r = &self.refs[ri];
@@ -167,6 +183,7 @@ impl TopLevelAccel {
                     &lb,
                     t_min,
                     *t_max,
+                    &mut stack,
                     &mut inner_counters,
                     |node, tm| {
                         obj.mesh.intersect_leaf(&lw, node, t_min, tm, &mut obj_best);
@@ -212,6 +229,7 @@ impl TopLevelAccel {
         let mut hit = false;
         let mut counters = TraversalCounters::default();
         let mut inner = TraversalCounters::default();
+        let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
         self.tree
             .traverse(&bray, t_min, ray.t_max, &mut counters, |leaf, t_max| {
                 for ri in leaf.prim_range() {
@@ -230,6 +248,7 @@ impl TopLevelAccel {
                         &lb,
                         t_min,
                         *t_max,
+                        &mut stack,
                         &mut inner,
                         |node, tm| {
                             hit = obj.mesh.occluded_leaf(&lw, node, t_min, *tm);
