@@ -23,9 +23,24 @@
 //!   list's spare slots, the largest ones (by extent along the split axis) are
 //!   opened, so a tight budget degrades gracefully instead of opening nothing;
 //! - the pairwise-overlap test of short lists checks every pair;
+//! - several opening rounds per step (`open_rounds`), and refs opened by their
+//!   longest extent rather than their extent along the list's longest axis;
+//! - refs weighted in the SAH by their subtree's expected cost rather than
+//!   their primitive count;
 //! - refs may carry an instance transform and be opened through it
 //!   ([`RebraidParams::open_instances`]): the children's world boxes are their
 //!   transformed object-space boxes.
+
+//!
+//! Tried and rejected (figures from `rebraid stats`, SAH cost, on the shared
+//! scenes): an "SAH guard" that keeps an opening round only when the opened
+//! list's best binned split is cheaper than the unopened list's. It looks one
+//! step ahead only, and opening rarely pays within one step, so it undid the
+//! useful openings too: nexuiz 110.9 (54.8 without), openarena 60.1 (28.8),
+//! samurai 42.9 (30.5), cocoa temple 22.8 (18.9); it helped only on
+//! 2CylinderEngine (100.1 against 105.8), where opening interpenetrating parts
+//! hurts. Top-level leaves of up to 4 refs chosen by the SAH: nexuiz 56.1
+//! against 54.8, no change elsewhere.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -533,6 +548,22 @@ where
     left
 }
 
+/// Binned SAH split of a list weighted by the refs' subtree costs; `None`
+/// when the centroids coincide or the tree is too deep (median split then).
+fn find_split(
+    ctx: &Ctx,
+    list: &[BuildRef],
+    cbounds: &Aabb,
+    depth: u32,
+) -> Option<(BinMapping, SplitCandidate)> {
+    if depth >= MEDIAN_FROM_DEPTH || cbounds.extent().max_element() <= 0.0 {
+        return None;
+    }
+    let map = BinMapping::new(cbounds, ctx.params.bins.min(list.len().max(4)));
+    let parallel = list.len() > ctx.params.parallel_threshold;
+    with_bins(&map, &ListBinner { list, parallel }).map(|s| (map, s))
+}
+
 /// Build the subtree over the `n` refs at the front of `list` (`list.len()`
 /// slots in all, the rest spare). `list[0]` is array position `first`; the
 /// subtree's descendants go to `desc`, whose first slot is `desc_first`.
@@ -553,6 +584,7 @@ fn build_list(
         return BvhNode::leaf(bounds, first, 1);
     }
     let mut n = n;
+    let mut split = find_split(ctx, &list[..n], &cbounds, depth);
     for _ in 0..ctx.params.open_rounds {
         if !(ctx.params.open
             && depth < MEDIAN_FROM_DEPTH
@@ -566,24 +598,8 @@ fn build_list(
         }
         n = opened;
         (bounds, cbounds) = list_bounds(&list[..n], n > ctx.params.parallel_threshold);
+        split = find_split(ctx, &list[..n], &cbounds, depth);
     }
-    let parallel = n > ctx.params.parallel_threshold;
-
-    // Binned SAH weighted by the refs' subtree costs; median split when
-    // the centroids coincide or the tree grows too deep.
-    let split = (depth < MEDIAN_FROM_DEPTH && cbounds.extent().max_element() > 0.0)
-        .then(|| {
-            let map = BinMapping::new(&cbounds, ctx.params.bins.min(n.max(4)));
-            with_bins(
-                &map,
-                &ListBinner {
-                    list: &list[..n],
-                    parallel,
-                },
-            )
-            .map(|s| (map, s))
-        })
-        .flatten();
     // A leaf of several refs when the SAH prefers it: the refs' costs as seen
     // from this node's box against one traversal step plus the split.
     if n <= ctx.params.max_leaf_refs {
