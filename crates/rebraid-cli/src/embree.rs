@@ -32,7 +32,6 @@ use embree3::{
     RayHit, Scene,
 };
 use glam::{Affine3A, Mat4, Vec3};
-use rayon::prelude::*;
 use rebraid::{INVALID_ID, Ray, SceneDesc, TriangleMesh};
 
 /// How a [`SceneDesc`] is laid out in Embree.
@@ -396,21 +395,13 @@ impl EmbreeScene {
     /// Closest hits of many rays, in parallel on the rayon pool (one
     /// `rtcIntersect1` per ray).
     pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<EmbreeHit>]) {
-        assert_eq!(rays.len(), out.len(), "one output per ray");
-        out.par_iter_mut()
-            .zip(rays.par_iter())
-            .with_min_len(256)
-            .for_each(|(o, r)| *o = self.intersect(r));
+        rebraid::ray::par_query(rays, out, |r| self.intersect(r));
     }
 
     /// Occlusion of many rays, in parallel on the rayon pool (one
     /// `rtcOccluded1` per ray).
     pub fn occluded_batch(&self, rays: &[Ray], out: &mut [bool]) {
-        assert_eq!(rays.len(), out.len(), "one output per ray");
-        out.par_iter_mut()
-            .zip(rays.par_iter())
-            .with_min_len(256)
-            .for_each(|(o, r)| *o = self.occluded(r));
+        rebraid::ray::par_query(rays, out, |r| self.occluded(r));
     }
 
     /// Bytes Embree has allocated on this scene's device and not freed

@@ -242,20 +242,12 @@ impl MeshBvh {
 
     /// Closest hits of many rays, in parallel; `out[i]` answers `rays[i]`.
     pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
-        assert_eq!(rays.len(), out.len(), "one output per ray");
-        out.par_iter_mut()
-            .zip(rays.par_iter())
-            .with_min_len(256)
-            .for_each(|(o, r)| *o = self.intersect(r));
+        crate::ray::par_query(rays, out, |r| self.intersect(r));
     }
 
     /// Occlusion of many rays, in parallel; `out[i]` answers `rays[i]`.
     pub fn occluded_batch(&self, rays: &[Ray], out: &mut [bool]) {
-        assert_eq!(rays.len(), out.len(), "one output per ray");
-        out.par_iter_mut()
-            .zip(rays.par_iter())
-            .with_min_len(256)
-            .for_each(|(o, r)| *o = self.occluded(r));
+        crate::ray::par_query(rays, out, |r| self.occluded(r));
     }
 
     /// Tree statistics; `bytes` includes the triangle storage.

@@ -71,6 +71,24 @@ impl Ray {
     }
 }
 
+/// Answer many rays in parallel on the current rayon pool: `out[i] =
+/// query(&rays[i])`. Every batch API (mesh, scene, the Embree baseline) goes
+/// through this, so they share one chunking policy.
+///
+/// Panics when `rays` and `out` differ in length (a caller bug).
+pub fn par_query<T, F>(rays: &[Ray], out: &mut [T], query: F)
+where
+    T: Send,
+    F: Fn(&Ray) -> T + Sync,
+{
+    use rayon::prelude::*;
+    assert_eq!(rays.len(), out.len(), "one output per ray");
+    out.par_iter_mut()
+        .zip(rays.par_iter())
+        .with_min_len(256)
+        .for_each(|(o, r)| *o = query(r));
+}
+
 /// The closest hit along a ray.
 ///
 /// `u` and `v` are barycentric coordinates: the hit point is

@@ -142,7 +142,7 @@ pub fn build_bvh(boxes: &[Aabb], centroids: &[Vec3], params: &BuildParams) -> Re
         cbounds,
         1,
     );
-    let nodes = compact(&slots);
+    let nodes = compact_slots(&slots, |_| {});
     let bvh = Bvh {
         nodes,
         prim_indices: prims,
@@ -411,15 +411,18 @@ fn build_node(
     BvhNode::inner(bounds, desc_first)
 }
 
-/// Renumber the used slots into depth-first order (each node's children pair
-/// allocated when the node is visited), dropping the unused slots.
-fn compact(slots: &[BvhNode]) -> Vec<BvhNode> {
+/// Renumber the used node slots of a slot-layout build into depth-first
+/// order (each node's children pair allocated when the node is visited),
+/// dropping the unused slots. `on_leaf` sees every leaf in that order and may
+/// rewrite its primitive range (the top-level builder compacts its refs so).
+pub(crate) fn compact_slots(slots: &[BvhNode], mut on_leaf: impl FnMut(&mut BvhNode)) -> Vec<BvhNode> {
     let mut out = Vec::with_capacity(slots.len());
     out.push(slots[0]);
     let mut stack = vec![0usize];
     while let Some(i) = stack.pop() {
         let node = out[i];
         if node.is_leaf() {
+            on_leaf(&mut out[i]);
             continue;
         }
         let old = node.index as usize;

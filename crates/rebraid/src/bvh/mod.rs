@@ -3,10 +3,12 @@
 pub mod binning;
 mod build;
 mod node;
+mod refit;
 mod stats;
 mod traverse;
 mod validate;
 
+pub(crate) use build::compact_slots;
 pub use build::{BuildParams, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh};
 pub use node::BvhNode;
 pub use stats::{BvhStats, SahCosts};
