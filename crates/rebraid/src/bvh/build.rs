@@ -12,6 +12,13 @@
 //! primitive per leaf), chunk sizes are constants, and merges are exact
 //! (box unions and integer sums). The tree is therefore identical for any
 //! thread count; a final pass compacts the slots into depth-first order.
+//!
+//! Tried and rejected: partitioning 40-byte primitive records (box,
+//! centroid, id) instead of `u32` indices into the box and centroid arrays,
+//! for sequential memory access as Embree's PrimRefs give. Single-thread
+//! flat build of `library --scale 2` (2M triangles, `rebraid stats library
+//! --scale 2 --modes flat`, alternating binaries): 2.1-2.3 s against
+//! 1.93 s with indices; no change on the 125K-triangle nexuiz scene.
 
 use glam::Vec3;
 use rayon::prelude::*;
