@@ -22,6 +22,11 @@ use rebraid::glam::Vec3;
 use rebraid::{Aabb, BuildParams, Hit, MeshBvh, Ray, TriangleMesh};
 
 fn main() {
+    // Load and build every scene up front, so that their summaries (and skip
+    // messages) print before divan's table instead of inside it.
+    for scene in SCENES {
+        prepared(scene);
+    }
     divan::main();
 }
 
