@@ -102,6 +102,7 @@ impl Bvh {
     /// caller's `stack`. The caller has already tested `start`'s box, so it
     /// is not tested again.
     #[inline(always)]
+    #[allow(clippy::too_many_arguments)] // the hot path: plain values, no argument struct
     pub fn traverse_from<F>(
         &self,
         start: u32,
