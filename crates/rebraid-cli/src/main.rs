@@ -8,6 +8,7 @@ use std::process::ExitCode;
 use anyhow::{Context, bail};
 use clap::{Args, Parser, Subcommand};
 use rebraid::{AccelMode, RefBudget, Scene, SceneParams};
+use rebraid_cli::animate;
 use rebraid_cli::bench::{self, BenchConfig, BenchRow};
 use rebraid_cli::camera::{Camera, UpAxis};
 use rebraid_cli::loaders::{LoadOptions, Split};
@@ -33,6 +34,8 @@ enum Command {
     Bench(BenchArgs),
     /// Scene statistics: objects, triangles, overlap, and per mode the tree statistics.
     Stats(StatsArgs),
+    /// Move a built-in animated object through a scene; per-frame update and trace times per mode.
+    Animate(AnimateArgs),
     /// Internal: trace stored rays through Embree in its own process.
     #[command(hide = true)]
     EmbreeWorker(EmbreeWorkerArgs),
@@ -42,7 +45,7 @@ enum Command {
 #[derive(Args, Debug, Clone)]
 struct SceneOpts {
     /// Size of the built-in `library` scene (1.0 is about a million triangles).
-    #[arg(long, default_value_t = 0.25)]
+    #[arg(long, default_value_t = 0.25, allow_negative_numbers = true)]
     scale: f32,
     /// Seed of the built-in scenes.
     #[arg(long, default_value_t = 1)]
@@ -249,6 +252,69 @@ struct StatsArgs {
 }
 
 #[derive(Args, Debug)]
+struct AnimateArgs {
+    /// A scene file (OBJ, glTF/GLB, PLY) or `library`: the static scene.
+    #[arg(default_value = "library")]
+    scene: String,
+    #[arg(long, default_value_t = 10)]
+    frames: usize,
+    /// The animated object.
+    #[arg(long, value_enum, default_value_t = animate::DynamicArg::LibraryRobot)]
+    dynamic: animate::DynamicArg,
+    /// Triangles of the animated object.
+    #[arg(long, default_value_t = 200_000)]
+    dynamic_triangles: usize,
+    /// Modes, comma-separated, run one after another.
+    #[arg(long, default_value = "flat,two-level,rebraided")]
+    mode: String,
+    /// How the animated object's BVH follows it in the two-level modes.
+    #[arg(long, value_enum, default_value_t = animate::PolicyArg::Refit)]
+    policy: animate::PolicyArg,
+    /// Allocate the top-level build's buffers anew every frame (for measurements).
+    #[arg(long)]
+    no_buffer_reuse: bool,
+    /// Render every frame to <DIR>/<mode>/frame_NNNN.png.
+    #[arg(short, long)]
+    output: Option<PathBuf>,
+    /// Write the per-frame rows and the summary as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    #[arg(long, default_value_t = 960)]
+    width: u32,
+    #[arg(long, default_value_t = 540)]
+    height: u32,
+    #[arg(long, default_value_t = 1)]
+    spp: u32,
+    #[arg(long, default_value_t = 1)]
+    bounces: u32,
+    #[command(flatten)]
+    opts: SceneOpts,
+}
+
+fn run_animate(a: AnimateArgs) -> anyhow::Result<()> {
+    let cfg = animate::AnimateConfig {
+        input: a.opts.input(&a.scene)?,
+        load: a.opts.load_options(),
+        params: a.opts.scene_params(AccelMode::Rebraided)?,
+        modes: parse_modes(&a.mode)?,
+        dynamic: a.dynamic,
+        dynamic_triangles: a.dynamic_triangles,
+        policy: a.policy,
+        reuse_buffers: !a.no_buffer_reuse,
+        frames: a.frames,
+        width: a.width,
+        height: a.height,
+        spp: a.spp,
+        bounces: a.bounces,
+        out_dir: a.output,
+        json: a.json,
+        camera: a.opts.camera.clone(),
+        up: a.opts.up,
+    };
+    animate::run(&cfg).map(|_| ())
+}
+
+#[derive(Args, Debug)]
 struct EmbreeWorkerArgs {
     scene: String,
     #[arg(long)]
@@ -270,6 +336,7 @@ fn main() -> ExitCode {
         Some(Command::Render(a)) => run_render(a),
         Some(Command::Bench(a)) => run_bench(a),
         Some(Command::Stats(a)) => run_stats(a),
+        Some(Command::Animate(a)) => run_animate(a),
         Some(Command::EmbreeWorker(a)) => run_embree_worker(a),
     };
     match result {

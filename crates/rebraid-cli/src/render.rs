@@ -1,8 +1,8 @@
 //! A small path tracer over a committed scene, and the traversal heat map.
 //!
 //! Diffuse surfaces coloured per object, a point light above the scene's
-//! centre (inside the scene box, so closed levels and rooms are lit) tested
-//! with shadow rays through any-hit queries, a dim sky for rays that leave,
+//! centre (inside the scene box, so closed levels and rooms are lit; see
+//! [`render_light`]) tested with shadow rays through any-hit queries, a dim sky for rays that leave,
 //! and cosine-sampled diffuse bounces. The heat map shows the number of BVH
 //! nodes (both levels) a primary ray visits: the picture that shows why
 //! re-braiding helps.
@@ -61,14 +61,56 @@ fn progress_bar(show: bool, len: u64, what: &str) -> ProgressBar {
     pb
 }
 
+/// The render's point light: of a few points between the eye and the
+/// benchmarks' light above the scene's centre ([`light_position`]), the one
+/// with the most free space around it, measured by probe rays. The
+/// benchmarks' light alone can sit inside an object (in the `library`, it is
+/// inside a bookcase) and leave the picture dark. Returns the light and the
+/// mean free distance around it (which sets the exposure).
+pub fn render_light(scene: &Scene, bounds: &Aabb, up: Vec3, eye: Vec3) -> (Vec3, f32) {
+    let size = bounds.extent().max_element().max(1e-3);
+    let base = light_position(bounds, up);
+    let h = bounds.extent().dot(up.abs());
+    let mut best = (f32::NEG_INFINITY, base, size);
+    let candidates = [0.5, 0.3, 0.7, 1.0]
+        .into_iter()
+        .map(|a| eye.lerp(base, a))
+        .chain([0.1, 0.2, -0.1].map(|f| base + up * (f * h)));
+    for p in candidates {
+        // Free distances over a Fibonacci sphere of directions: their mean,
+        // discounted when a surface is very close (a light just under a
+        // ceiling over-exposes it).
+        let n = 128;
+        let (mut sum, mut near) = (0.0f32, size);
+        for i in 0..n {
+            let z = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            let phi = i as f32 * 2.399_963;
+            let d = Vec3::new(r * phi.cos(), r * phi.sin(), z);
+            let t = scene
+                .intersect(&Ray::infinite(p, d))
+                .map_or(size, |hit| hit.t.min(size));
+            sum += t;
+            near = near.min(t);
+        }
+        let mean = sum / n as f32;
+        let score = mean * (near / (0.05 * h).max(1e-6)).min(1.0);
+        // Prefer earlier candidates unless a later one is clearly better.
+        if score > best.0 * 1.25 {
+            best = (score, p, mean);
+        }
+    }
+    (best.1, best.2)
+}
+
 /// Path-trace the scene.
 pub fn render(scene: &Scene, s: &RenderSettings) -> Image {
     let cam = s.camera.rays(s.width, s.height);
-    let light = light_position(&s.bounds, s.up);
+    let (light, free) = render_light(scene, &s.bounds, s.up, s.camera.eye);
     let eps = ray_epsilon(&s.bounds);
-    let size = s.bounds.extent().max_element().max(1e-3);
-    // Intensity so that a surface at half the scene size is lit about 1.
-    let intensity = (0.5 * size) * (0.5 * size) * std::f32::consts::PI;
+    // Intensity so that a surface facing the light at its mean free distance
+    // is lit about 1.
+    let intensity = free * free * std::f32::consts::PI;
     let sky = |d: Vec3| {
         let k = 0.5 + 0.5 * d.dot(s.up);
         Vec3::new(0.35, 0.4, 0.5) * (0.3 + 0.7 * k)
@@ -195,7 +237,20 @@ pub fn write_heatmap(
             img.put_pixel(x, y, image::Rgb(col));
         }
     }
-    img.save(path)
+    save_png(path, &img)
+}
+
+/// Write a PNG with the best compression (noisy renders compress badly).
+fn save_png(path: &std::path::Path, img: &image::RgbImage) -> anyhow::Result<()> {
+    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+    let file =
+        std::fs::File::create(path).with_context(|| format!("writing {}", path.display()))?;
+    let enc = PngEncoder::new_with_quality(
+        std::io::BufWriter::new(file),
+        CompressionType::Best,
+        FilterType::Adaptive,
+    );
+    img.write_with_encoder(enc)
         .with_context(|| format!("writing {}", path.display()))
 }
 
@@ -211,8 +266,7 @@ pub fn write_png(path: &std::path::Path, img: &Image) -> anyhow::Result<()> {
             image::Rgb([g(m.x), g(m.y), g(m.z)]),
         );
     }
-    out.save(path)
-        .with_context(|| format!("writing {}", path.display()))
+    save_png(path, &out)
 }
 
 #[cfg(test)]
