@@ -1,6 +1,7 @@
 //! The app layer of rebraid: scene loaders, the renderer and the benchmark
 //! harness behind the `rebraid` binary.
 
+pub mod animate;
 pub mod bench;
 pub mod camera;
 #[cfg(feature = "embree")]

@@ -28,11 +28,13 @@
 //! ```
 
 pub mod aabb;
+pub mod animation;
 pub mod bvh;
 pub mod desc;
 pub mod error;
 pub mod mesh;
 pub mod procedural;
+pub mod procedural_dynamic;
 pub mod ray;
 pub mod scene;
 pub mod toplevel;
@@ -45,7 +47,9 @@ pub use desc::{InstanceDesc, ObjectDesc, SceneDesc};
 pub use error::Error;
 pub use mesh::{MeshBvh, TriangleMesh};
 pub use ray::{Hit, INVALID_ID, Ray};
-pub use scene::{AccelMode, CommitReport, InstanceId, ObjectId, Scene, SceneParams, SceneStats};
+pub use scene::{
+    AccelMode, CommitReport, InstanceId, ObjectId, Scene, SceneParams, SceneStats, UpdatePolicy,
+};
 pub use toplevel::{RebraidParams, RefBudget};
 
 pub use glam;

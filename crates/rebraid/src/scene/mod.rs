@@ -20,10 +20,9 @@ use flat::FlatPart;
 pub use flat::{FlatAccel, PrimOrigin};
 
 use crate::bvh::{BuildParams, BvhStats, SahCosts, TraversalCounters};
-use crate::toplevel::builder::RefSources;
+use crate::toplevel::builder::{RefSources, TopLevelScratch, build_top_level_with};
 use crate::toplevel::{
     BuildRef, InstanceXf, ObjectBvh, RebraidParams, TopLevelAccel, TopLevelBuildStats,
-    build_top_level,
 };
 use crate::transform::check_transform;
 use crate::{Error, Hit, INVALID_ID, MeshBvh, Ray, SceneDesc, TriangleMesh};
@@ -86,12 +85,41 @@ pub struct SceneParams {
     pub rebraid: RebraidParams,
 }
 
+/// How a commit brings the BVH of an object whose vertices moved up to date.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum UpdatePolicy {
+    /// Build a new BVH (best tree, slowest update).
+    #[default]
+    Rebuild,
+    /// Keep the tree's topology and recompute its boxes from the new
+    /// vertices ([`MeshBvh::refit`]): much faster, but the tree degrades as
+    /// the geometry moves away from the pose it was built for. Applies only
+    /// when the triangles are unchanged: a new mesh with other indices
+    /// ([`Scene::set_mesh`]) and the object's first BVH are always built.
+    Refit,
+}
+
 struct Object {
     mesh: TriangleMesh,
     placed: bool,
     bvh: Option<Arc<ObjectBvh>>,
     /// The mesh changed since `bvh` was built.
     dirty: bool,
+    /// The triangles (indices) changed since `bvh` was built: rebuild.
+    topology_changed: bool,
+    policy: UpdatePolicy,
+}
+
+impl Object {
+    /// A moved object whose BVH can be refitted rather than rebuilt.
+    fn can_refit(&self) -> bool {
+        self.policy == UpdatePolicy::Refit
+            && !self.topology_changed
+            && self
+                .bvh
+                .as_ref()
+                .is_some_and(|b| b.mesh.len() == self.mesh.len())
+    }
 }
 
 #[derive(Clone, Copy)]
@@ -116,11 +144,19 @@ pub struct CommitReport {
     pub mode: AccelMode,
     /// Objects whose BVH was (re)built by this commit.
     pub objects_rebuilt: Vec<ObjectId>,
-    /// Objects whose BVH from an earlier commit was reused.
+    /// Objects whose BVH was refitted to moved vertices by this commit
+    /// ([`UpdatePolicy::Refit`]); disjoint from `objects_rebuilt`.
+    pub objects_refitted: Vec<ObjectId>,
+    /// Objects whose BVH from an earlier commit was reused as it was.
     pub objects_reused: usize,
     /// Triangles of the rebuilt objects.
     pub triangles_rebuilt: usize,
+    /// Triangles of the refitted objects.
+    pub triangles_refitted: usize,
+    /// Building the BVHs of `objects_rebuilt`.
     pub object_build_ms: f64,
+    /// Refitting the BVHs of `objects_refitted`.
+    pub refit_ms: f64,
     /// Top-level build (two-level modes) or the whole flat build (flat mode).
     pub top_build_ms: f64,
     pub total_ms: f64,
@@ -137,6 +173,12 @@ pub struct Scene {
     accel: Accel,
     /// Some edit since the last commit.
     changed: bool,
+    /// Buffers of the top-level build, kept between commits.
+    top_scratch: TopLevelScratch,
+    /// Initial refs of the top-level build, kept between commits.
+    top_initial: Vec<BuildRef>,
+    /// Do not keep `top_scratch` between commits (for measurements).
+    no_buffer_reuse: bool,
 }
 
 impl Scene {
@@ -187,6 +229,8 @@ impl Scene {
             placed: true,
             bvh: None,
             dirty: true,
+            topology_changed: true,
+            policy: UpdatePolicy::default(),
         }));
         self.changed = true;
         Ok(self.objects.len() as u32 - 1)
@@ -228,17 +272,48 @@ impl Scene {
         Ok(&self.object(id)?.mesh)
     }
 
-    /// Replace the object's mesh (topology may change); rebuilt at commit.
+    /// Replace the object's mesh. Rebuilt at commit, unless the new mesh has
+    /// the same triangles (indices) and the object's policy is
+    /// [`UpdatePolicy::Refit`].
     pub fn set_mesh(&mut self, id: ObjectId, mesh: TriangleMesh) -> Result<(), Error> {
         mesh.validate()?;
         let o = self.object_mut(id)?;
+        if mesh.indices != o.mesh.indices {
+            o.topology_changed = true;
+        }
         o.mesh = mesh;
         o.dirty = true;
         self.changed = true;
         Ok(())
     }
 
-    /// Move the object's vertices (same count, same triangles); rebuilt at commit.
+    /// How commits update the object's BVH after its vertices moved.
+    pub fn set_update_policy(&mut self, id: ObjectId, policy: UpdatePolicy) -> Result<(), Error> {
+        self.object_mut(id)?.policy = policy;
+        Ok(())
+    }
+
+    pub fn update_policy(&self, id: ObjectId) -> Result<UpdatePolicy, Error> {
+        Ok(self.object(id)?.policy)
+    }
+
+    /// Keep the top-level build's large buffers (ref array, scratch, node
+    /// slots, output arrays) between commits (the default), or allocate them
+    /// anew for every commit (`false`, for measurements).
+    pub fn set_reuse_top_level_buffers(&mut self, reuse: bool) {
+        self.no_buffer_reuse = !reuse;
+        if !reuse {
+            self.top_scratch.clear();
+        }
+    }
+
+    /// Bytes held between commits for the top-level build.
+    pub fn top_level_buffer_bytes(&self) -> usize {
+        self.top_scratch.bytes() + self.top_initial.capacity() * std::mem::size_of::<BuildRef>()
+    }
+
+    /// Move the object's vertices (same count, same triangles); rebuilt or
+    /// refitted at commit, by the object's [`UpdatePolicy`].
     pub fn set_vertices(&mut self, id: ObjectId, positions: &[glam::Vec3]) -> Result<(), Error> {
         let o = self.object_mut(id)?;
         if positions.len() != o.mesh.positions.len() {
@@ -433,13 +508,34 @@ impl Scene {
                 Accel::Flat(flat)
             };
         } else {
+            // Take the previous structure apart: its output arrays go back
+            // to the top-level buffers, and its references to the object
+            // BVHs are dropped, so that the refits below update the BVHs in
+            // place (`Arc::make_mut` copies one only while someone else,
+            // e.g. a caller's clone of the old structure, still holds it).
+            // Should this commit fail from here on, queries hit nothing
+            // until the next successful commit.
+            let (mut objects_buf, mut instances_buf) = (Vec::new(), Vec::new());
+            if let Accel::TopLevel(old) = std::mem::take(&mut self.accel)
+                && !self.no_buffer_reuse
+            {
+                self.top_scratch.recycle(old.refs);
+                objects_buf = old.objects;
+                instances_buf = old.instances;
+                objects_buf.clear();
+                instances_buf.clear();
+            }
+
             // Object BVHs of changed objects, in parallel across objects.
             let t = Instant::now();
             let todo: Vec<usize> = self
                 .objects
                 .iter()
                 .enumerate()
-                .filter(|(_, o)| o.as_ref().is_some_and(|o| o.dirty || o.bvh.is_none()))
+                .filter(|(_, o)| {
+                    o.as_ref()
+                        .is_some_and(|o| (o.dirty || o.bvh.is_none()) && !o.can_refit())
+                })
                 .map(|(i, _)| i)
                 .collect();
             let params = &self.params.object_build;
@@ -455,13 +551,40 @@ impl Scene {
                 report.triangles_rebuilt += o.mesh.len();
                 o.bvh = Some(Arc::new(ObjectBvh::new(r?)));
                 o.dirty = false;
+                o.topology_changed = false;
                 report.objects_rebuilt.push(i as u32);
             }
-            report.objects_reused = self.object_count() - report.objects_rebuilt.len();
             report.object_build_ms = t.elapsed().as_secs_f64() * 1e3;
 
+            // Refits of moved objects, in place, in parallel across objects
+            // (and within each large one).
             let t = Instant::now();
-            let top = self.build_top(mode)?;
+            let refitted: Vec<(usize, Result<(), Error>)> = self
+                .objects
+                .par_iter_mut()
+                .enumerate()
+                .filter_map(|(i, o)| {
+                    let o = o.as_mut()?;
+                    if !(o.dirty && o.can_refit()) {
+                        return None;
+                    }
+                    let bvh = Arc::make_mut(o.bvh.as_mut()?);
+                    Some((i, bvh.refit(&o.mesh)))
+                })
+                .collect();
+            for (i, r) in refitted {
+                r?;
+                let o = self.objects[i].as_mut().expect("refitted above");
+                report.triangles_refitted += o.mesh.len();
+                o.dirty = false;
+                report.objects_refitted.push(i as u32);
+            }
+            report.refit_ms = t.elapsed().as_secs_f64() * 1e3;
+            report.objects_reused =
+                self.object_count() - report.objects_rebuilt.len() - report.objects_refitted.len();
+
+            let t = Instant::now();
+            let top = self.build_top(mode, objects_buf, instances_buf)?;
             report.top_build_ms = t.elapsed().as_secs_f64() * 1e3;
             report.top = Some(top.build_stats.clone());
             self.accel = if top.tree.is_empty() {
@@ -475,23 +598,26 @@ impl Scene {
         Ok(report)
     }
 
-    /// Initial refs (object roots and instance roots) and the top-level build.
-    fn build_top(&self, mode: AccelMode) -> Result<TopLevelAccel, Error> {
-        let objects: Vec<Option<Arc<ObjectBvh>>> = self
-            .objects
-            .iter()
-            .map(|o| {
-                o.as_ref()
-                    .and_then(|o| o.bvh.clone())
-                    .filter(|b| !b.mesh.is_empty())
-            })
-            .collect();
-        let instances: Vec<InstanceXf> = self
-            .instances
-            .iter()
-            .map(|i| i.map_or(InstanceXf::new(Affine3A::IDENTITY), |i| i.xf))
-            .collect();
-        let mut refs = Vec::new();
+    /// Initial refs (object roots and instance roots) and the top-level
+    /// build, into the given (cleared) arrays and the kept buffers.
+    fn build_top(
+        &mut self,
+        mode: AccelMode,
+        mut objects: Vec<Option<Arc<ObjectBvh>>>,
+        mut instances: Vec<InstanceXf>,
+    ) -> Result<TopLevelAccel, Error> {
+        objects.extend(self.objects.iter().map(|o| {
+            o.as_ref()
+                .and_then(|o| o.bvh.clone())
+                .filter(|b| !b.mesh.is_empty())
+        }));
+        instances.extend(
+            self.instances
+                .iter()
+                .map(|i| i.map_or(InstanceXf::new(Affine3A::IDENTITY), |i| i.xf)),
+        );
+        let mut refs = std::mem::take(&mut self.top_initial);
+        refs.clear();
         for (id, o) in self.objects.iter().enumerate() {
             if let (Some(o), Some(bvh)) = (o, &objects[id])
                 && o.placed
@@ -531,7 +657,17 @@ impl Scene {
             objects: &objects,
             instances: &instances,
         };
-        let (tree, top_refs, build_stats) = build_top_level(&refs, src, &params)?;
+        let mut fresh = TopLevelScratch::default();
+        let buffers = if self.no_buffer_reuse {
+            &mut fresh
+        } else {
+            &mut self.top_scratch
+        };
+        let built = build_top_level_with(&refs, src, &params, buffers);
+        if !self.no_buffer_reuse {
+            self.top_initial = refs;
+        }
+        let (tree, top_refs, build_stats) = built?;
         let accel = TopLevelAccel {
             tree,
             refs: top_refs,
@@ -571,20 +707,12 @@ impl Scene {
 
     /// Closest hits of many rays, in parallel.
     pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
-        assert_eq!(rays.len(), out.len(), "one output per ray");
-        out.par_iter_mut()
-            .zip(rays.par_iter())
-            .with_min_len(256)
-            .for_each(|(o, r)| *o = self.intersect(r));
+        crate::ray::par_query(rays, out, |r| self.intersect(r));
     }
 
     /// Occlusion of many rays, in parallel.
     pub fn occluded_batch(&self, rays: &[Ray], out: &mut [bool]) {
-        assert_eq!(rays.len(), out.len(), "one output per ray");
-        out.par_iter_mut()
-            .zip(rays.par_iter())
-            .with_min_len(256)
-            .for_each(|(o, r)| *o = self.occluded(r));
+        crate::ray::par_query(rays, out, |r| self.occluded(r));
     }
 
     /// Statistics of the committed structure.

@@ -48,7 +48,7 @@ use rayon::prelude::*;
 
 use super::{InstanceXf, ObjectBvh, TopRef};
 use crate::bvh::binning::{BinMapping, BinRange, Bins, MAX_BINS, SplitCandidate, with_bins};
-use crate::bvh::{Bvh, BvhNode, MEDIAN_FROM_DEPTH};
+use crate::bvh::{Bvh, BvhNode, MEDIAN_FROM_DEPTH, compact_slots};
 use crate::{Aabb, Error, INVALID_ID};
 
 /// How many ref slots the build may use in all.
@@ -241,6 +241,65 @@ pub fn build_top_level(
     src: RefSources,
     params: &RebraidParams,
 ) -> Result<(Bvh, Vec<TopRef>, TopLevelBuildStats), Error> {
+    build_top_level_with(initial, src, params, &mut TopLevelScratch::default())
+}
+
+/// The large buffers of a top-level build, kept between builds so that a
+/// scene committed every frame does not allocate (nor page in) them anew:
+/// the ref array with its spare slots, the partition scratch, the node slots,
+/// and the previous build's output ref array handed back by
+/// [`TopLevelScratch::recycle`].
+///
+/// The buffers only grow; [`TopLevelScratch::bytes`] tells how much they hold
+/// and [`TopLevelScratch::clear`] frees them.
+#[derive(Clone, Debug, Default)]
+pub struct TopLevelScratch {
+    refs: Vec<BuildRef>,
+    scratch: Vec<BuildRef>,
+    slots: Vec<BvhNode>,
+    out_refs: Vec<TopRef>,
+}
+
+impl TopLevelScratch {
+    /// Hand back the ref array of a previous build's output for the next
+    /// one (the node array is allocated by the slot compaction).
+    pub fn recycle(&mut self, refs: Vec<TopRef>) {
+        if refs.capacity() > self.out_refs.capacity() {
+            self.out_refs = refs;
+        }
+    }
+
+    /// Bytes held by the buffers.
+    pub fn bytes(&self) -> usize {
+        use std::mem::size_of;
+        (self.refs.capacity() + self.scratch.capacity()) * size_of::<BuildRef>()
+            + self.slots.capacity() * size_of::<BvhNode>()
+            + self.out_refs.capacity() * size_of::<TopRef>()
+    }
+
+    /// Free every buffer.
+    pub fn clear(&mut self) {
+        *self = Self::default();
+    }
+}
+
+/// `buf[..len]`, growing `buf` with `fill` only when it is too short. The
+/// stale contents of a reused buffer are never read: the builder writes
+/// every ref, scratch entry and node slot before reading it.
+fn reuse<T: Copy>(buf: &mut Vec<T>, len: usize, fill: T) -> &mut [T] {
+    if buf.len() < len {
+        buf.resize(len, fill);
+    }
+    &mut buf[..len]
+}
+
+/// [`build_top_level`] with buffers reused from earlier builds.
+pub fn build_top_level_with(
+    initial: &[BuildRef],
+    src: RefSources,
+    params: &RebraidParams,
+    buffers: &mut TopLevelScratch,
+) -> Result<(Bvh, Vec<TopRef>, TopLevelBuildStats), Error> {
     params.check()?;
     let start = std::time::Instant::now();
     let n = initial.len();
@@ -269,47 +328,38 @@ pub fn build_top_level(
     if capacity >= (1usize << 31) {
         return Err(Error::TooManyPrimitives(capacity));
     }
-    // The only allocations of the build: ref array, scratch, node slots.
-    let mut refs = vec![initial[0]; capacity];
+    // The only buffers of the build: ref array, scratch, node slots (reused
+    // from earlier builds when `buffers` holds them).
+    let refs = reuse(&mut buffers.refs, capacity, initial[0]);
     refs[..n].copy_from_slice(initial);
-    let mut scratch = vec![initial[0]; capacity];
-    let mut slots = vec![bytemuck::Zeroable::zeroed(); 2 * capacity - 1];
+    let scratch = reuse(&mut buffers.scratch, capacity, initial[0]);
+    let slots = reuse(
+        &mut buffers.slots,
+        2 * capacity - 1,
+        bytemuck::Zeroable::zeroed(),
+    );
     let ctx = Ctx {
         src,
         params,
         opened: AtomicU64::new(0),
     };
     let (root, desc) = slots.split_at_mut(1);
-    root[0] = build_list(&ctx, &mut refs, &mut scratch, n, desc, 1, 0, 1);
+    root[0] = build_list(&ctx, refs, scratch, n, desc, 1, 0, 1);
 
     // Compact the slots into depth-first order, refs into leaf order.
-    let mut nodes: Vec<BvhNode> = Vec::with_capacity(2 * capacity);
-    let mut out_refs: Vec<TopRef> = Vec::with_capacity(capacity);
-    nodes.push(slots[0]);
-    let mut stack = vec![0usize];
-    while let Some(i) = stack.pop() {
-        let node = nodes[i];
-        if node.is_leaf() {
-            let first = out_refs.len() as u32;
-            for r in &refs[node.prim_range()] {
-                out_refs.push(TopRef {
-                    object: r.object,
-                    node: r.node,
-                    instance: r.instance,
-                    prims: r.prims,
-                });
-            }
-            nodes[i].index = first;
-            continue;
-        }
-        let old = node.index as usize;
-        let new = nodes.len();
-        nodes.push(slots[old]);
-        nodes.push(slots[old + 1]);
-        nodes[i].index = new as u32;
-        stack.push(new + 1);
-        stack.push(new);
-    }
+    let mut out_refs: Vec<TopRef> = std::mem::take(&mut buffers.out_refs);
+    out_refs.clear();
+    out_refs.reserve(capacity);
+    let nodes = compact_slots(slots, |leaf| {
+        let first = out_refs.len() as u32;
+        out_refs.extend(refs[leaf.prim_range()].iter().map(|r| TopRef {
+            object: r.object,
+            node: r.node,
+            instance: r.instance,
+            prims: r.prims,
+        }));
+        leaf.index = first;
+    });
     let stats = TopLevelBuildStats {
         refs_initial: n,
         refs_final: out_refs.len(),

@@ -36,9 +36,32 @@ pub struct ObjectBvh {
 
 impl ObjectBvh {
     pub fn new(mesh: MeshBvh) -> Self {
-        let nodes = &mesh.bvh.nodes;
-        let mut counts = vec![0u32; nodes.len()];
-        let mut cost = vec![0f32; nodes.len()];
+        let n = mesh.bvh.nodes.len();
+        let mut o = Self {
+            mesh,
+            subtree_prims: vec![0; n],
+            subtree_cost: vec![0.0; n],
+        };
+        o.update_counts_and_costs();
+        o
+    }
+
+    /// Refit the object BVH to moved vertices (same triangles, see
+    /// [`MeshBvh::refit`]) and recompute the subtree costs, which depend on
+    /// the boxes; the primitive counts do not change.
+    pub fn refit(&mut self, mesh: &crate::TriangleMesh) -> Result<(), crate::Error> {
+        self.mesh.refit(mesh)?;
+        self.update_counts_and_costs();
+        Ok(())
+    }
+
+    /// Recompute `subtree_prims` and `subtree_cost` from the nodes.
+    fn update_counts_and_costs(&mut self) {
+        let nodes = &self.mesh.bvh.nodes;
+        let counts = &mut self.subtree_prims;
+        let cost = &mut self.subtree_cost;
+        counts.resize(nodes.len(), 0);
+        cost.resize(nodes.len(), 0.0);
         // Children are stored after their parent, so a reverse sweep sees
         // both children before the parent.
         for i in (0..nodes.len()).rev() {
@@ -58,11 +81,6 @@ impl ObjectBvh {
                     1.0 + cost[l] + cost[r]
                 };
             }
-        }
-        Self {
-            mesh,
-            subtree_prims: counts,
-            subtree_cost: cost,
         }
     }
 

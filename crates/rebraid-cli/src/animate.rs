@@ -1,0 +1,373 @@
+//! `rebraid animate`: a static scene plus a built-in animated object moving
+//! through it, committed and traced frame after frame in each mode.
+//!
+//! Per mode, the static scene and the object (posed at t = 0) are built once
+//! (the "initial build", not a frame); then every frame poses the object at
+//! its time (interpolation), commits (the moved object's BVH is rebuilt or
+//! refitted by `--policy`, the top level rebuilt; flat rebuilds everything),
+//! and traces: a fixed set of primary rays (one per pixel centre) for
+//! Mrays/s, and with `-o` a path-traced PNG per frame. The summary gives the
+//! medians over the frames.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use rebraid::glam::Vec3;
+use rebraid::procedural_dynamic::{DynamicKind, DynamicObject, DynamicParams};
+use rebraid::{AccelMode, Ray, Scene, SceneParams, UpdatePolicy};
+use serde::Serialize;
+
+use crate::bench::median;
+use crate::camera::{Camera, UpAxis};
+use crate::loaders::LoadOptions;
+use crate::render::{self, RenderSettings};
+use crate::scene_input::SceneInput;
+
+/// The built-in animated objects.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DynamicArg {
+    /// An articulated robot walking through the scene (one mesh, vertices posed per frame).
+    LibraryRobot,
+    /// A wobbling torus gliding through the scene (key-framed mesh and transform).
+    Deforming,
+}
+
+impl DynamicArg {
+    pub fn kind(self) -> DynamicKind {
+        match self {
+            DynamicArg::LibraryRobot => DynamicKind::Robot,
+            DynamicArg::Deforming => DynamicKind::Deforming,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            DynamicArg::LibraryRobot => "library-robot",
+            DynamicArg::Deforming => "deforming",
+        }
+    }
+}
+
+/// How the animated object's BVH follows it (two-level modes).
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PolicyArg {
+    Refit,
+    Rebuild,
+}
+
+impl PolicyArg {
+    pub fn policy(self) -> UpdatePolicy {
+        match self {
+            PolicyArg::Refit => UpdatePolicy::Refit,
+            PolicyArg::Rebuild => UpdatePolicy::Rebuild,
+        }
+    }
+}
+
+/// What to run.
+#[derive(Clone, Debug)]
+pub struct AnimateConfig {
+    pub input: SceneInput,
+    pub load: LoadOptions,
+    /// Scene parameters (the mode is set per run).
+    pub params: SceneParams,
+    pub modes: Vec<AccelMode>,
+    pub dynamic: DynamicArg,
+    pub dynamic_triangles: usize,
+    pub policy: PolicyArg,
+    /// Keep the top-level build buffers between commits (the default).
+    pub reuse_buffers: bool,
+    pub frames: usize,
+    pub width: u32,
+    pub height: u32,
+    pub spp: u32,
+    pub bounces: u32,
+    /// Write `<dir>/<mode>/frame_NNNN.png`.
+    pub out_dir: Option<PathBuf>,
+    pub json: Option<PathBuf>,
+    /// `--camera` (default: the fitted camera).
+    pub camera: Option<String>,
+    pub up: UpAxis,
+}
+
+/// One frame of one mode.
+#[derive(Clone, Debug, Default, Serialize, PartialEq)]
+pub struct FrameRow {
+    pub mode: String,
+    pub frame: usize,
+    pub time: f32,
+    /// Posing the object (interpolation) and handing the vertices over.
+    pub interp_ms: f64,
+    /// Object BVH rebuilds (two-level modes).
+    pub rebuild_ms: f64,
+    /// Object BVH refits (two-level modes).
+    pub refit_ms: f64,
+    /// Top-level build, or the whole flat build.
+    pub top_ms: f64,
+    /// The whole commit.
+    pub commit_ms: f64,
+    /// Interpolation plus commit.
+    pub update_ms: f64,
+    pub objects_rebuilt: usize,
+    pub objects_refitted: usize,
+    pub top_refs: usize,
+    /// Path-traced frame (with `-o`).
+    pub render_ms: Option<f64>,
+    pub primary_rays: usize,
+    pub primary_hits: usize,
+    pub mrays_per_s: f64,
+}
+
+/// Medians of one mode over its frames.
+#[derive(Clone, Debug, Default, Serialize, PartialEq)]
+pub struct ModeSummary {
+    pub mode: String,
+    pub initial_build_ms: f64,
+    pub frames: usize,
+    pub median_update_ms: f64,
+    pub median_commit_ms: f64,
+    pub median_object_ms: f64,
+    pub median_top_ms: f64,
+    pub median_mrays_per_s: f64,
+    pub median_render_ms: Option<f64>,
+}
+
+#[derive(Serialize)]
+struct Report<'a> {
+    scene: String,
+    dynamic: &'a str,
+    dynamic_triangles: usize,
+    static_triangles: usize,
+    policy: &'a str,
+    reuse_buffers: bool,
+    width: u32,
+    height: u32,
+    camera: String,
+    frames: &'a [FrameRow],
+    summary: &'a [ModeSummary],
+}
+
+/// Run every mode; print the per-frame table and the summary; write the
+/// PNGs and JSON asked for. Returns the rows and summaries.
+pub fn run(cfg: &AnimateConfig) -> anyhow::Result<(Vec<FrameRow>, Vec<ModeSummary>)> {
+    if cfg.frames == 0 || cfg.width == 0 || cfg.height == 0 || cfg.spp == 0 {
+        bail!("--frames, --width, --height and --spp must be at least 1");
+    }
+    if cfg.modes.is_empty() {
+        bail!("no mode to run");
+    }
+    let (desc, load_ms) = cfg.input.load(&cfg.load)?;
+    let (_, bounds) = desc.world_boxes();
+    let up = cfg.up.resolve(&bounds);
+    let camera = match &cfg.camera {
+        Some(s) => Camera::parse(s, up)?,
+        None => Camera::fit(&bounds, up),
+    };
+    let dyn_params = DynamicParams::in_box(&bounds, up, cfg.dynamic_triangles);
+    let object = DynamicObject::new(cfg.dynamic.kind(), &dyn_params)?;
+    println!(
+        "scene {}: {} objects, {} instances, {} triangles (loaded in {load_ms:.0} ms); camera {}",
+        cfg.input.name(),
+        desc.objects.len(),
+        desc.instances.len(),
+        desc.world_triangles(),
+        camera.to_arg()
+    );
+    println!(
+        "dynamic {}: {} triangles, {} vertices, height {:.2}, path {:?} -> {:?}; policy {:?}, {} frames",
+        cfg.dynamic.name(),
+        object.triangle_count(),
+        object.vertex_count(),
+        dyn_params.height,
+        dyn_params.start.to_array(),
+        dyn_params.end.to_array(),
+        cfg.policy,
+        cfg.frames
+    );
+    let cam = camera.rays(cfg.width, cfg.height);
+    let rays: Vec<Ray> = (0..cfg.height)
+        .flat_map(|y| (0..cfg.width).map(move |x| (x, y)))
+        .map(|(x, y)| cam.pixel_ray(x, y))
+        .collect();
+    let mut hits = vec![None; rays.len()];
+    let settings = RenderSettings {
+        width: cfg.width,
+        height: cfg.height,
+        spp: cfg.spp,
+        bounces: cfg.bounces,
+        camera,
+        bounds,
+        up,
+        progress: false,
+    };
+
+    let mut rows = Vec::new();
+    let mut summaries = Vec::new();
+    let mut positions: Vec<Vec3> = Vec::with_capacity(object.vertex_count());
+    for &mode in &cfg.modes {
+        let dir = match &cfg.out_dir {
+            Some(d) => {
+                let d = d.join(mode.name());
+                std::fs::create_dir_all(&d).with_context(|| format!("creating {}", d.display()))?;
+                Some(d)
+            }
+            None => None,
+        };
+        let mut scene = Scene::from_desc(
+            &desc,
+            SceneParams {
+                mode,
+                ..cfg.params.clone()
+            },
+        )?;
+        scene.set_reuse_top_level_buffers(cfg.reuse_buffers);
+        let id = scene.add_object(object.mesh_at(0.0))?;
+        scene.set_update_policy(id, cfg.policy.policy())?;
+        let initial = scene.commit()?;
+        println!(
+            "\n{}: initial build {:.1} ms (objects {:.1} ms, top {:.1} ms)",
+            mode.name(),
+            initial.total_ms,
+            initial.object_build_ms,
+            initial.top_build_ms
+        );
+        println!(
+            "  {:>5} {:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>10} {:>8}",
+            "frame",
+            "t",
+            "interp",
+            "rebuild",
+            "refit",
+            "top",
+            "commit",
+            "update",
+            "Mrays/s",
+            "render ms",
+            "refs"
+        );
+        let mut mode_rows: Vec<FrameRow> = Vec::with_capacity(cfg.frames);
+        for f in 0..cfg.frames {
+            let t = if cfg.frames > 1 {
+                f as f32 / (cfg.frames - 1) as f32
+            } else {
+                0.0
+            };
+            let t0 = Instant::now();
+            object.positions_into(t, &mut positions);
+            scene.set_vertices(id, &positions)?;
+            let interp_ms = t0.elapsed().as_secs_f64() * 1e3;
+            let rep = scene.commit()?;
+
+            let t1 = Instant::now();
+            scene.intersect_batch(&rays, &mut hits);
+            let trace_s = t1.elapsed().as_secs_f64();
+            let render_ms = match &dir {
+                Some(d) => {
+                    let t2 = Instant::now();
+                    let img = render::render(&scene, &settings);
+                    let ms = t2.elapsed().as_secs_f64() * 1e3;
+                    render::write_png(&d.join(format!("frame_{f:04}.png")), &img)?;
+                    Some(ms)
+                }
+                None => None,
+            };
+            let row = FrameRow {
+                mode: mode.name().to_string(),
+                frame: f,
+                time: t,
+                interp_ms,
+                rebuild_ms: rep.object_build_ms,
+                refit_ms: rep.refit_ms,
+                top_ms: rep.top_build_ms,
+                commit_ms: rep.total_ms,
+                update_ms: interp_ms + rep.total_ms,
+                objects_rebuilt: rep.objects_rebuilt.len(),
+                objects_refitted: rep.objects_refitted.len(),
+                top_refs: rep.top.as_ref().map_or(0, |s| s.refs_final),
+                render_ms,
+                primary_rays: rays.len(),
+                primary_hits: hits.iter().flatten().count(),
+                mrays_per_s: rays.len() as f64 / trace_s.max(1e-9) / 1e6,
+            };
+            println!(
+                "  {:>5} {:>6.3} {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>8.2} {:>10} {:>8}",
+                row.frame,
+                row.time,
+                row.interp_ms,
+                row.rebuild_ms,
+                row.refit_ms,
+                row.top_ms,
+                row.commit_ms,
+                row.update_ms,
+                row.mrays_per_s,
+                row.render_ms.map_or("-".to_string(), |m| format!("{m:.0}")),
+                row.top_refs
+            );
+            mode_rows.push(row);
+        }
+        let med = |f: &dyn Fn(&FrameRow) -> f64| median(mode_rows.iter().map(f).collect());
+        summaries.push(ModeSummary {
+            mode: mode.name().to_string(),
+            initial_build_ms: initial.total_ms,
+            frames: cfg.frames,
+            median_update_ms: med(&|r| r.update_ms),
+            median_commit_ms: med(&|r| r.commit_ms),
+            median_object_ms: med(&|r| r.rebuild_ms + r.refit_ms),
+            median_top_ms: med(&|r| r.top_ms),
+            median_mrays_per_s: med(&|r| r.mrays_per_s),
+            median_render_ms: dir.as_ref().map(|_| med(&|r| r.render_ms.unwrap_or(0.0))),
+        });
+        rows.extend(mode_rows);
+    }
+
+    println!(
+        "\nsummary (medians over {} frames; update = interpolation + commit)",
+        cfg.frames
+    );
+    println!(
+        "  {:<10} {:>12} {:>10} {:>10} {:>10} {:>10} {:>9}",
+        "mode", "initial ms", "update ms", "commit ms", "object ms", "top ms", "Mrays/s"
+    );
+    for s in &summaries {
+        println!(
+            "  {:<10} {:>12.1} {:>10.2} {:>10.2} {:>10.2} {:>10.2} {:>9.2}",
+            s.mode,
+            s.initial_build_ms,
+            s.median_update_ms,
+            s.median_commit_ms,
+            s.median_object_ms,
+            s.median_top_ms,
+            s.median_mrays_per_s
+        );
+    }
+    if let Some(d) = &cfg.out_dir {
+        println!(
+            "wrote {} frames per mode to {}/<mode>/frame_NNNN.png",
+            cfg.frames,
+            d.display()
+        );
+    }
+    if let Some(p) = &cfg.json {
+        let report = Report {
+            scene: cfg.input.name(),
+            dynamic: cfg.dynamic.name(),
+            dynamic_triangles: object.triangle_count(),
+            static_triangles: desc.world_triangles(),
+            policy: match cfg.policy {
+                PolicyArg::Refit => "refit",
+                PolicyArg::Rebuild => "rebuild",
+            },
+            reuse_buffers: cfg.reuse_buffers,
+            width: cfg.width,
+            height: cfg.height,
+            camera: camera.to_arg(),
+            frames: &rows,
+            summary: &summaries,
+        };
+        std::fs::write(p, serde_json::to_string_pretty(&report)?)
+            .with_context(|| format!("writing {}", p.display()))?;
+        println!("wrote {}", p.display());
+    }
+    Ok((rows, summaries))
+}

@@ -1,0 +1,60 @@
+//! `rebraid animate` end to end: a tiny library with the default robot,
+//! three frames in every mode, PNGs and JSON written.
+
+use std::process::Command;
+
+#[test]
+fn animate_writes_frames_and_json() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let frames = dir.path().join("frames");
+    let json = dir.path().join("animate.json");
+    let out = Command::new(env!("CARGO_BIN_EXE_rebraid"))
+        .args(["animate", "library", "--scale", "0.02", "--frames", "3"])
+        .args(["--width", "64", "--height", "36"])
+        .arg("-o")
+        .arg(&frames)
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .expect("run rebraid");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "exit {:?}\nstdout:\n{stdout}\nstderr:\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("summary"), "{stdout}");
+    let modes = ["flat", "two-level", "rebraided"];
+    for mode in modes {
+        for f in 0..3 {
+            let png = frames.join(mode).join(format!("frame_{f:04}.png"));
+            let bytes = std::fs::read(&png).unwrap_or_else(|e| panic!("{}: {e}", png.display()));
+            assert!(bytes.starts_with(b"\x89PNG"), "{}", png.display());
+        }
+        assert_eq!(
+            std::fs::read_dir(frames.join(mode)).unwrap().count(),
+            3,
+            "{mode}: three PNGs"
+        );
+    }
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).expect("JSON");
+    let rows = v["frames"].as_array().expect("frames array");
+    assert_eq!(rows.len(), 9, "one row per frame and mode");
+    for (k, r) in rows.iter().enumerate() {
+        assert_eq!(r["mode"], modes[k / 3]);
+        assert_eq!(r["frame"], (k % 3) as u64);
+        assert!(r["mrays_per_s"].as_f64().unwrap() > 0.0);
+        assert!(r["commit_ms"].as_f64().unwrap() >= 0.0);
+        assert_eq!(r["primary_rays"], 64 * 36);
+        assert!(r["render_ms"].as_f64().is_some());
+        if r["mode"] != "flat" {
+            // The robot's BVH is refitted every frame (policy refit).
+            assert_eq!(r["objects_refitted"], 1, "{r}");
+            assert_eq!(r["objects_rebuilt"], 0, "{r}");
+        }
+    }
+    assert_eq!(v["summary"].as_array().unwrap().len(), 3);
+    assert!(v["dynamic_triangles"].as_u64().unwrap() > 150_000);
+}
