@@ -442,12 +442,26 @@ fn children(ctx: &Ctx, r: &BuildRef) -> [BuildRef; 2] {
     let c = nodes[r.node as usize].index;
     let xf = (r.instance != INVALID_ID).then(|| &ctx.src.instances[r.instance as usize]);
     let make = |i: u32| {
-        let local = nodes[i as usize].bounds();
+        let node = &nodes[i as usize];
+        let local = node.bounds();
+        let bounds = match xf {
+            None => local,
+            // An instanced leaf's world box is that of its transformed
+            // vertices (a handful): much tighter than the transformed local
+            // box under rotation. Inner nodes get the transformed local box.
+            // Both are clipped to the parent's world box, which holds them
+            // up to rounding, so that the top-level nodes nest exactly.
+            Some(xf) if node.is_leaf() => obj.mesh.triangles[node.prim_range()]
+                .iter()
+                .flatten()
+                .fold(Aabb::EMPTY, |b, v| {
+                    b.grow(xf.object_to_world.transform_point3(*v))
+                })
+                .intersection(r.bounds),
+            Some(xf) => xf.world_box(&local).intersection(r.bounds),
+        };
         BuildRef {
-            // Clip to the parent's world box: the transformed child box lies
-            // inside it up to rounding, and clipping keeps the top-level
-            // nodes nested exactly.
-            bounds: xf.map_or(local, |xf| xf.world_box(&local).intersection(r.bounds)),
+            bounds,
             object: r.object,
             node: i,
             instance: r.instance,
@@ -529,12 +543,16 @@ impl BinRange for ListBinner<'_> {
             bins
         };
         if self.parallel {
-            let parts: Vec<Bins<N>> = self.list.par_chunks(CHUNK * 4).map(bin_chunk).collect();
-            let mut all = Bins::<N>::default();
-            for p in &parts {
-                all.merge(p, map.bins);
-            }
-            all.best_split(map)
+            // Reduced in place (no buffer of partial bins): merges are exact,
+            // so the result does not depend on how rayon pairs the chunks.
+            self.list
+                .par_chunks(CHUNK * 4)
+                .map(bin_chunk)
+                .reduce(Bins::<N>::default, |mut a, b| {
+                    a.merge(&b, map.bins);
+                    a
+                })
+                .best_split(map)
         } else {
             bin_chunk(self.list).best_split(map)
         }
@@ -542,7 +560,9 @@ impl BinRange for ListBinner<'_> {
 }
 
 /// Partition `list` so that refs for which `is_left` holds come first;
-/// stable through `scratch` when parallel. Returns the left count.
+/// stable through `scratch` when parallel. Returns the left count. Does not
+/// allocate: the parallel path halves the list recursively (`rayon::join`),
+/// counting each left half to place both halves' outputs.
 fn partition_refs<F>(
     list: &mut [BuildRef],
     scratch: &mut [BuildRef],
@@ -564,38 +584,56 @@ where
         }
         return i;
     }
-    let counts: Vec<usize> = list
-        .par_chunks(CHUNK)
-        .map(|c| c.iter().filter(|r| is_left(r)).count())
-        .collect();
-    let left: usize = counts.iter().sum();
-    let (mut rest_l, mut rest_r) = scratch[..list.len()].split_at_mut(left);
-    let mut dests = Vec::with_capacity(counts.len());
-    for (k, &nl) in counts.iter().enumerate() {
-        let len = CHUNK.min(list.len() - k * CHUNK);
-        let (a, tl) = std::mem::take(&mut rest_l).split_at_mut(nl);
-        let (b, tr) = std::mem::take(&mut rest_r).split_at_mut(len - nl);
-        rest_l = tl;
-        rest_r = tr;
-        dests.push((a, b));
-    }
-    list.par_chunks(CHUNK)
-        .zip(dests.into_par_iter())
-        .for_each(|(chunk, (dl, dr))| {
-            let (mut i, mut j) = (0, 0);
-            for r in chunk {
-                if is_left(r) {
-                    dl[i] = *r;
-                    i += 1;
-                } else {
-                    dr[j] = *r;
-                    j += 1;
-                }
-            }
-        });
     let n = list.len();
-    list.copy_from_slice(&scratch[..n]);
+    let left = count_left(list, &is_left);
+    let (lo, hi) = scratch[..n].split_at_mut(left);
+    scatter(list, lo, hi, &is_left);
+    list.par_chunks_mut(CHUNK * 4)
+        .zip(scratch[..n].par_chunks(CHUNK * 4))
+        .for_each(|(d, s)| d.copy_from_slice(s));
     left
+}
+
+/// Number of refs of `list` for which `is_left` holds (parallel by halving).
+fn count_left<F: Fn(&BuildRef) -> bool + Sync>(list: &[BuildRef], is_left: &F) -> usize {
+    if list.len() <= 4 * CHUNK {
+        return list.iter().filter(|r| is_left(r)).count();
+    }
+    let (a, b) = list.split_at(list.len() / 2);
+    let (x, y) = rayon::join(|| count_left(a, is_left), || count_left(b, is_left));
+    x + y
+}
+
+/// Copy the refs of `list` for which `is_left` holds to `left` and the others
+/// to `right`, both in order; the outputs are exactly as long as needed.
+fn scatter<F: Fn(&BuildRef) -> bool + Sync>(
+    list: &[BuildRef],
+    left: &mut [BuildRef],
+    right: &mut [BuildRef],
+    is_left: &F,
+) {
+    if list.len() <= 4 * CHUNK {
+        let (mut i, mut j) = (0, 0);
+        for r in list {
+            if is_left(r) {
+                left[i] = *r;
+                i += 1;
+            } else {
+                right[j] = *r;
+                j += 1;
+            }
+        }
+        return;
+    }
+    let mid = list.len() / 2;
+    let (a, b) = list.split_at(mid);
+    let nl = count_left(a, is_left);
+    let (l1, l2) = left.split_at_mut(nl);
+    let (r1, r2) = right.split_at_mut(mid - nl);
+    rayon::join(
+        || scatter(a, l1, r1, is_left),
+        || scatter(b, l2, r2, is_left),
+    );
 }
 
 /// Binned SAH split of a list weighted by the refs' subtree costs; `None`
