@@ -422,7 +422,10 @@ fn build_node(
 /// order (each node's children pair allocated when the node is visited),
 /// dropping the unused slots. `on_leaf` sees every leaf in that order and may
 /// rewrite its primitive range (the top-level builder compacts its refs so).
-pub(crate) fn compact_slots(slots: &[BvhNode], mut on_leaf: impl FnMut(&mut BvhNode)) -> Vec<BvhNode> {
+pub(crate) fn compact_slots(
+    slots: &[BvhNode],
+    mut on_leaf: impl FnMut(&mut BvhNode),
+) -> Vec<BvhNode> {
     let mut out = Vec::with_capacity(slots.len());
     out.push(slots[0]);
     let mut stack = vec![0usize];
