@@ -149,7 +149,8 @@ pub fn build_bvh(boxes: &[Aabb], centroids: &[Vec3], params: &BuildParams) -> Re
         cbounds,
         1,
     );
-    let nodes = compact_slots(&slots, |_| {});
+    let mut nodes = Vec::with_capacity(slots.len());
+    compact_slots(&slots, &mut nodes, |_| {});
     let bvh = Bvh {
         nodes,
         prim_indices: prims,
@@ -420,13 +421,15 @@ fn build_node(
 
 /// Renumber the used node slots of a slot-layout build into depth-first
 /// order (each node's children pair allocated when the node is visited),
-/// dropping the unused slots. `on_leaf` sees every leaf in that order and may
+/// dropping the unused slots, into `out` (cleared first; its capacity is
+/// reused). `on_leaf` sees every leaf in that order and may
 /// rewrite its primitive range (the top-level builder compacts its refs so).
 pub(crate) fn compact_slots(
     slots: &[BvhNode],
+    out: &mut Vec<BvhNode>,
     mut on_leaf: impl FnMut(&mut BvhNode),
-) -> Vec<BvhNode> {
-    let mut out = Vec::with_capacity(slots.len());
+) {
+    out.clear();
     out.push(slots[0]);
     let mut stack = vec![0usize];
     while let Some(i) = stack.pop() {
@@ -443,5 +446,4 @@ pub(crate) fn compact_slots(
         stack.push(new + 1);
         stack.push(new);
     }
-    out
 }

@@ -519,7 +519,7 @@ impl Scene {
             if let Accel::TopLevel(old) = std::mem::take(&mut self.accel)
                 && !self.no_buffer_reuse
             {
-                self.top_scratch.recycle(old.refs);
+                self.top_scratch.recycle(old.tree.nodes, old.refs);
                 objects_buf = old.objects;
                 instances_buf = old.instances;
                 objects_buf.clear();

@@ -247,7 +247,7 @@ pub fn build_top_level(
 /// The large buffers of a top-level build, kept between builds so that a
 /// scene committed every frame does not allocate (nor page in) them anew:
 /// the ref array with its spare slots, the partition scratch, the node slots,
-/// and the previous build's output ref array handed back by
+/// and the previous build's output node and ref arrays handed back by
 /// [`TopLevelScratch::recycle`].
 ///
 /// The buffers only grow; [`TopLevelScratch::bytes`] tells how much they hold
@@ -257,13 +257,17 @@ pub struct TopLevelScratch {
     refs: Vec<BuildRef>,
     scratch: Vec<BuildRef>,
     slots: Vec<BvhNode>,
+    nodes: Vec<BvhNode>,
     out_refs: Vec<TopRef>,
 }
 
 impl TopLevelScratch {
-    /// Hand back the ref array of a previous build's output for the next
-    /// one (the node array is allocated by the slot compaction).
-    pub fn recycle(&mut self, refs: Vec<TopRef>) {
+    /// Hand back the node and ref arrays of a previous build's output for
+    /// the next one.
+    pub fn recycle(&mut self, nodes: Vec<BvhNode>, refs: Vec<TopRef>) {
+        if nodes.capacity() > self.nodes.capacity() {
+            self.nodes = nodes;
+        }
         if refs.capacity() > self.out_refs.capacity() {
             self.out_refs = refs;
         }
@@ -273,7 +277,7 @@ impl TopLevelScratch {
     pub fn bytes(&self) -> usize {
         use std::mem::size_of;
         (self.refs.capacity() + self.scratch.capacity()) * size_of::<BuildRef>()
-            + self.slots.capacity() * size_of::<BvhNode>()
+            + (self.slots.capacity() + self.nodes.capacity()) * size_of::<BvhNode>()
             + self.out_refs.capacity() * size_of::<TopRef>()
     }
 
@@ -350,7 +354,8 @@ pub fn build_top_level_with(
     let mut out_refs: Vec<TopRef> = std::mem::take(&mut buffers.out_refs);
     out_refs.clear();
     out_refs.reserve(capacity);
-    let nodes = compact_slots(slots, |leaf| {
+    let mut nodes = std::mem::take(&mut buffers.nodes);
+    compact_slots(slots, &mut nodes, |leaf| {
         let first = out_refs.len() as u32;
         out_refs.extend(refs[leaf.prim_range()].iter().map(|r| TopRef {
             object: r.object,
