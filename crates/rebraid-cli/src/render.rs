@@ -77,23 +77,7 @@ pub fn render_light(scene: &Scene, bounds: &Aabb, up: Vec3, eye: Vec3) -> (Vec3,
         .map(|a| eye.lerp(base, a))
         .chain([0.1, 0.2, -0.1].map(|f| base + up * (f * h)));
     for p in candidates {
-        // Free distances over a Fibonacci sphere of directions: their mean,
-        // discounted when a surface is very close (a light just under a
-        // ceiling over-exposes it).
-        let n = 128;
-        let (mut sum, mut near) = (0.0f32, size);
-        for i in 0..n {
-            let z = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
-            let r = (1.0 - z * z).max(0.0).sqrt();
-            let phi = i as f32 * 2.399_963;
-            let d = Vec3::new(r * phi.cos(), r * phi.sin(), z);
-            let t = scene
-                .intersect(&Ray::infinite(p, d))
-                .map_or(size, |hit| hit.t.min(size));
-            sum += t;
-            near = near.min(t);
-        }
-        let mean = sum / n as f32;
+        let (mean, near) = free_space(scene, p, size);
         let score = mean * (near / (0.05 * h).max(1e-6)).min(1.0);
         // Prefer earlier candidates unless a later one is clearly better.
         if score > best.0 * 1.25 {
@@ -103,14 +87,48 @@ pub fn render_light(scene: &Scene, bounds: &Aabb, up: Vec3, eye: Vec3) -> (Vec3,
     (best.1, best.2)
 }
 
+/// Mean and least free distance from `p` over a Fibonacci sphere of 128
+/// directions (misses count as `size`).
+fn free_space(scene: &Scene, p: Vec3, size: f32) -> (f32, f32) {
+    let n = 128;
+    let (mut sum, mut near) = (0.0f32, size);
+    for i in 0..n {
+        let z = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+        let r = (1.0 - z * z).max(0.0).sqrt();
+        let phi = i as f32 * 2.399_963;
+        let d = Vec3::new(r * phi.cos(), r * phi.sin(), z);
+        let t = scene
+            .intersect(&Ray::infinite(p, d))
+            .map_or(size, |hit| hit.t.min(size));
+        sum += t;
+        near = near.min(t);
+    }
+    (sum / n as f32, near)
+}
+
+/// The point lights of a render with their intensities: the light of
+/// [`render_light`], and a dimmer head light just above the eye, which
+/// lights whatever the camera sees even where the main light is walled off
+/// (the aisles of a large `library`).
+fn render_lights(scene: &Scene, s: &RenderSettings) -> [(Vec3, f32); 2] {
+    let (light, free) = render_light(scene, &s.bounds, s.up, s.camera.eye);
+    let size = s.bounds.extent().max_element().max(1e-3);
+    let (eye_free, eye_near) = free_space(scene, s.camera.eye, size);
+    let head = s.camera.eye + s.up * (0.5 * eye_near);
+    // Intensity so that a surface facing a light at its mean free distance
+    // is lit about 1 (the head light at half that).
+    let pi = std::f32::consts::PI;
+    [
+        (light, free * free * pi),
+        (head, 0.5 * eye_free * eye_free * pi),
+    ]
+}
+
 /// Path-trace the scene.
 pub fn render(scene: &Scene, s: &RenderSettings) -> Image {
     let cam = s.camera.rays(s.width, s.height);
-    let (light, free) = render_light(scene, &s.bounds, s.up, s.camera.eye);
+    let lights = render_lights(scene, s);
     let eps = ray_epsilon(&s.bounds);
-    // Intensity so that a surface facing the light at its mean free distance
-    // is lit about 1.
-    let intensity = free * free * std::f32::consts::PI;
     let sky = |d: Vec3| {
         let k = 0.5 + 0.5 * d.dot(s.up);
         Vec3::new(0.35, 0.4, 0.5) * (0.3 + 0.7 * k)
@@ -136,10 +154,13 @@ pub fn render(scene: &Scene, s: &RenderSettings) -> Image {
                             let n = facing_normal(&hit, &ray);
                             let p = ray.at(hit.t) + n * eps;
                             let a = albedo(&hit);
-                            let to_light = light - p;
-                            let d2 = to_light.length_squared().max(1e-12);
-                            let cos = n.dot(to_light) / d2.sqrt();
-                            if cos > 0.0 {
+                            for &(light, intensity) in &lights {
+                                let to_light = light - p;
+                                let d2 = to_light.length_squared().max(1e-12);
+                                let cos = n.dot(to_light) / d2.sqrt();
+                                if cos <= 0.0 {
+                                    continue;
+                                }
                                 let shadow = Ray {
                                     origin: p,
                                     dir: to_light,
