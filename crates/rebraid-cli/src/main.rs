@@ -77,6 +77,9 @@ struct SceneOpts {
     /// Do not open object BVHs through instance transforms (Embree's behaviour).
     #[arg(long)]
     no_open_instances: bool,
+    /// Re-braiding: open only refs that overlap a ref of another object or instance.
+    #[arg(long)]
+    open_only_overlapping: bool,
     /// Re-braiding: opening rounds per build step (the paper: 1).
     #[arg(long)]
     open_rounds: Option<usize>,
@@ -132,6 +135,7 @@ impl SceneOpts {
             }
         }
         r.open_instances = !self.no_open_instances;
+        r.open_only_overlapping = self.open_only_overlapping;
         if let Some(k) = self.open_rounds {
             r.open_rounds = k;
         }
@@ -517,6 +521,7 @@ fn embree_rows(
     let exe = std::env::current_exe()?;
     let scene_arg = match input {
         SceneInput::Library { .. } => "library".to_string(),
+        SceneInput::Grid { .. } => "grid".to_string(),
         SceneInput::File(p) => p.display().to_string(),
     };
     let mut rows = Vec::new();

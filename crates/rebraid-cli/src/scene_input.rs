@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use rebraid::SceneDesc;
-use rebraid::procedural::{LibraryParams, library};
+use rebraid::procedural::{LibraryParams, library, separated};
 
 use crate::loaders::{LoadOptions, load_scene};
 
@@ -17,21 +17,32 @@ pub enum SceneInput {
         scale: f32,
         seed: u64,
     },
+    /// 256 separated objects on a grid, no two boxes overlapping (the case
+    /// where re-braiding must cost nearly nothing); `scale` 1.0 is about a
+    /// million triangles.
+    Grid {
+        scale: f32,
+        seed: u64,
+    },
     File(PathBuf),
 }
 
 impl SceneInput {
     /// `library` or a path; paths must exist.
     pub fn parse(arg: &str, scale: f32, seed: u64) -> anyhow::Result<Self> {
-        if arg == "library" {
+        if arg == "library" || arg == "grid" {
             if !(scale.is_finite() && scale > 0.0) {
                 bail!("--scale must be a positive number, got {scale}");
             }
-            return Ok(SceneInput::Library { scale, seed });
+            return Ok(if arg == "grid" {
+                SceneInput::Grid { scale, seed }
+            } else {
+                SceneInput::Library { scale, seed }
+            });
         }
         let p = Path::new(arg);
         if !p.exists() {
-            bail!("scene '{arg}' is neither `library` nor an existing file");
+            bail!("scene '{arg}' is neither `library`, `grid` nor an existing file");
         }
         Ok(SceneInput::File(p.to_path_buf()))
     }
@@ -40,6 +51,7 @@ impl SceneInput {
     pub fn name(&self) -> String {
         match self {
             SceneInput::Library { scale, .. } => format!("library@{scale}"),
+            SceneInput::Grid { scale, .. } => format!("grid@{scale}"),
             SceneInput::File(p) => p
                 .file_stem()
                 .map(|s| s.to_string_lossy().into_owned())
@@ -51,6 +63,9 @@ impl SceneInput {
     pub fn load(&self, opts: &LoadOptions) -> anyhow::Result<(SceneDesc, f64)> {
         let t = Instant::now();
         let desc = match self {
+            SceneInput::Grid { scale, seed } => {
+                separated(16, ((4096.0 * scale) as usize).clamp(1, 1 << 20), *seed)
+            }
             SceneInput::Library { scale, seed } => library(&LibraryParams {
                 scale: *scale,
                 seed: *seed,

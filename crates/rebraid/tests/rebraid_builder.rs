@@ -463,3 +463,40 @@ fn instance_box_holds_vertices_when_translation_cancels() {
         }
     }
 }
+
+/// Separated objects (no two boxes overlap): re-braiding finds nothing worth
+/// the cost. With `open_only_overlapping` nothing opens at all and the tree
+/// is the plain two-level one; by default the SAH cost stays that of the
+/// two-level tree.
+#[test]
+fn separated_objects_cost_nearly_nothing() {
+    let desc = rebraid::procedural::separated(8, 60, 5);
+    let commit = |params: SceneParams| {
+        let mut scene = Scene::from_desc(&desc, params).unwrap();
+        scene.commit().unwrap();
+        let st = scene.stats();
+        let refs = match scene.accel() {
+            Accel::TopLevel(t) => t.refs.clone(),
+            _ => panic!("two-level modes build a top level"),
+        };
+        (st, refs)
+    };
+    let (two, two_refs) = commit(SceneParams {
+        mode: AccelMode::TwoLevel,
+        ..Default::default()
+    });
+    let (only, only_refs) = commit(rebraided(RebraidParams {
+        open_only_overlapping: true,
+        ..Default::default()
+    }));
+    assert_eq!(only.top.as_ref().unwrap().nodes_opened, 0);
+    assert_eq!(only_refs, two_refs);
+    assert_eq!(only.sah_cost, two.sah_cost);
+    let (default, _) = commit(rebraided(RebraidParams::default()));
+    assert!(
+        default.sah_cost <= two.sah_cost * 1.01,
+        "{} vs {}",
+        default.sah_cost,
+        two.sah_cost
+    );
+}
