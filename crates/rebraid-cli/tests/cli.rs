@@ -4,7 +4,10 @@
 //! files, the agreement of every mode on the benchmark rays, and the
 //! one-line `error:` messages of bad arguments.
 
-use std::path::{Path, PathBuf};
+#[path = "../../rebraid/tests/support/scenes.rs"]
+mod scenes;
+
+use std::path::Path;
 use std::process::{Command, Output};
 
 use serde_json::Value;
@@ -62,33 +65,6 @@ fn fails(cwd: &Path, args: &[&str]) -> String {
 
 fn s(p: &Path) -> &str {
     p.to_str().expect("utf-8 temp path")
-}
-
-/// The shared scenes: `$REBRAID_SCENES`, else `../shared/scenes` next to the
-/// workspace. `None` (after saying so) when missing, except under `CI=true`.
-fn scenes_dir() -> Option<PathBuf> {
-    let dir = std::env::var_os("REBRAID_SCENES")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            PathBuf::from(concat!(
-                env!("CARGO_MANIFEST_DIR"),
-                "/../../../shared/scenes"
-            ))
-        });
-    if dir.is_dir() {
-        return Some(dir);
-    }
-    if std::env::var("CI").is_ok_and(|v| v == "true") {
-        panic!(
-            "scenes directory {} is missing and CI=true: real-scene tests must run in CI",
-            dir.display()
-        );
-    }
-    eprintln!(
-        "SKIPPED: scenes directory {} not found (set REBRAID_SCENES)",
-        dir.display()
-    );
-    None
 }
 
 /// A PNG's size, after decoding it in full.
@@ -521,7 +497,9 @@ fn bench_small_obj_and_glb_files() {
 
 #[test]
 fn bench_real_glb_scene() {
-    let Some(scenes) = scenes_dir() else { return };
+    let Some(scenes) = scenes::scenes_dir_or_skip() else {
+        return;
+    };
     let glb = scenes.join("2CylinderEngine.glb");
     if !glb.is_file() {
         if std::env::var("CI").is_ok_and(|v| v == "true") {

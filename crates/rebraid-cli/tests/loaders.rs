@@ -3,6 +3,9 @@
 //! malformed files, each error checked to name the file and the line or
 //! element.
 
+#[path = "../../rebraid/tests/support/scenes.rs"]
+mod scenes;
+
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -10,34 +13,6 @@ use rebraid::SceneDesc;
 use rebraid_cli::loaders::{
     LoadError, LoadOptions, Location, Split, load_scene, load_scene_with_warnings,
 };
-
-/// The shared scenes: `$REBRAID_SCENES`, else `../shared/scenes` next to the
-/// workspace. `None` (after saying so) when missing, except under `CI=true`,
-/// where a missing directory fails the test: CI must exercise real data.
-fn scenes_dir() -> Option<PathBuf> {
-    let dir = std::env::var_os("REBRAID_SCENES")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            PathBuf::from(concat!(
-                env!("CARGO_MANIFEST_DIR"),
-                "/../../../shared/scenes"
-            ))
-        });
-    if dir.is_dir() {
-        return Some(dir);
-    }
-    if std::env::var("CI").is_ok_and(|v| v == "true") {
-        panic!(
-            "scenes directory {} is missing and CI=true: real-scene tests must run in CI",
-            dir.display()
-        );
-    }
-    eprintln!(
-        "SKIPPED: scenes directory {} not found (set REBRAID_SCENES)",
-        dir.display()
-    );
-    None
-}
 
 fn opts(split: Split, flatten_instances: bool) -> LoadOptions {
     LoadOptions {
@@ -67,7 +42,9 @@ fn timed_load(path: &Path, o: &LoadOptions) -> SceneDesc {
 
 #[test]
 fn real_obj_scenes_match_the_readme() {
-    let Some(dir) = scenes_dir() else { return };
+    let Some(dir) = scenes::scenes_dir_or_skip() else {
+        return;
+    };
     for (file, objects, tris, overlap) in [
         ("samurai_monastery.obj", 81, 124_789, 5.2),
         ("nexuiz_ons_reborn.obj", 114, 125_101, 21.8),
@@ -92,7 +69,9 @@ fn real_obj_scenes_match_the_readme() {
 
 #[test]
 fn real_glb_scenes_match_the_readme() {
-    let Some(dir) = scenes_dir() else { return };
+    let Some(dir) = scenes::scenes_dir_or_skip() else {
+        return;
+    };
     // (file, meshes, mesh nodes, (node, material) pairs, world tris, unique tris)
     for (file, meshes, nodes, pairs, world, unique) in [
         ("stk_cocoa_temple.glb", 59, 1_485, 2_482, 462_347, 110_015),

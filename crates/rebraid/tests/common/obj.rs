@@ -6,43 +6,15 @@
 //! tests and the benches through `#[path]`, so it depends on nothing but the
 //! crate.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
+
+#[path = "../support/scenes.rs"]
+mod scenes;
+#[allow(unused_imports)] // not every test crate reads real scenes
+pub use scenes::scene_path_or_skip;
 
 use rebraid::TriangleMesh;
 use rebraid::glam::Vec3;
-
-/// The scenes directory: `$REBRAID_SCENES`, else `shared/scenes` beside the
-/// workspace (the repository never holds the scenes themselves).
-pub fn scenes_dir() -> PathBuf {
-    match std::env::var_os("REBRAID_SCENES") {
-        Some(dir) => PathBuf::from(dir),
-        None => PathBuf::from(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../../../shared/scenes"
-        )),
-    }
-}
-
-/// The path of one scene file, or `None` (with a visible message) when it is
-/// missing. Under `CI=true` a missing scene is a failure, not a skip: CI must
-/// never pass by silently testing nothing.
-pub fn scene_path_or_skip(file: &str) -> Option<PathBuf> {
-    let path = scenes_dir().join(file);
-    if path.is_file() {
-        return Some(path);
-    }
-    let ci = std::env::var("CI").is_ok_and(|v| v == "true");
-    assert!(
-        !ci,
-        "scene {} not found and CI=true: CI must run the real-scene tests (set REBRAID_SCENES)",
-        path.display()
-    );
-    eprintln!(
-        "SKIPPED: scene {} not found (set REBRAID_SCENES to the scenes directory)",
-        path.display()
-    );
-    None
-}
 
 /// Parse the positions and faces of an OBJ file into one mesh.
 pub fn load_obj(path: &Path) -> TriangleMesh {

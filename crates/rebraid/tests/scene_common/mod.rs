@@ -9,7 +9,6 @@
 #![allow(dead_code)]
 
 use std::collections::{BTreeMap, HashMap};
-use std::path::PathBuf;
 
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
@@ -630,39 +629,6 @@ pub fn random_model(rng: &mut impl Rng, g: &Gen) -> Model {
     m
 }
 
-/// The real scenes directory: `$REBRAID_SCENES`, else `shared/scenes` beside
-/// the workspace.
-pub fn scenes_dir() -> PathBuf {
-    match std::env::var_os("REBRAID_SCENES") {
-        Some(d) => PathBuf::from(d),
-        None => PathBuf::from(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../../../shared/scenes"
-        )),
-    }
-}
-
-/// A real scene file, or None after a visible skip message. Under `CI=true`
-/// a missing scene fails: CI must not pass by testing nothing.
-pub fn scene_file_or_skip(file: &str) -> Option<PathBuf> {
-    let path = scenes_dir().join(file);
-    if path.is_file() {
-        return Some(path);
-    }
-    let ci = std::env::var("CI").is_ok_and(|v| v == "true");
-    assert!(
-        !ci,
-        "real scene {} is missing and CI=true: CI must run the real-scene tests \
-         (set REBRAID_SCENES to the scenes directory)",
-        path.display()
-    );
-    eprintln!(
-        "SKIPPED: real scene {} not found (set REBRAID_SCENES to the scenes directory)",
-        path.display()
-    );
-    None
-}
-
 /// An OBJ scene as a model: one placed object per `o`.
 pub fn load_obj_objects(path: &std::path::Path) -> Model {
     let (models, _) = tobj::load_obj(
@@ -694,3 +660,8 @@ pub fn load_obj_objects(path: &std::path::Path) -> Model {
     }
     m
 }
+
+#[path = "../support/scenes.rs"]
+mod scenes;
+#[allow(unused_imports)] // not every test crate reads real scenes
+pub use scenes::scene_path_or_skip as scene_file_or_skip;
