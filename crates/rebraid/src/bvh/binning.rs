@@ -4,8 +4,14 @@
 //! Hierarchies", IEEE RT 2007: centroids are projected into `bins` equal
 //! intervals per axis, each bin accumulates the bounds and the (weighted)
 //! count of its primitives, and a sweep evaluates the `bins - 1` planes.
+//!
+//! Bin boxes are `Vec3A` pairs ([`BinBox`]), and builders fill bins in place
+//! rather than returning them: together 1.43x faster flat builds and 1.57x
+//! faster object builds of `library --scale 1` (one thread, `rebraid stats
+//! library --scale 1 --modes flat,two-level`, 650 -> 455 ms and 455 -> 290 ms,
+//! alternating the two binaries; SAH cost and trees unchanged).
 
-use glam::Vec3;
+use glam::{Vec3, Vec3A};
 
 use crate::Aabb;
 
@@ -66,16 +72,59 @@ impl BinMapping {
 /// time (measured: 38% of a flat build in `best_split` before this).
 #[derive(Clone, Debug)]
 pub struct Bins<const N: usize = MAX_BINS> {
-    pub bounds: [[Aabb; N]; 3],
+    pub bounds: [[BinBox; N]; 3],
     pub weight: [[u64; N]; 3],
 }
 
 impl<const N: usize> Default for Bins<N> {
     fn default() -> Self {
         Self {
-            bounds: [[Aabb::EMPTY; N]; 3],
+            bounds: [[BinBox::EMPTY; N]; 3],
             weight: [[0; N]; 3],
         }
+    }
+}
+
+/// A bin's box in 16-byte SIMD vectors: binning is unions of boxes, and
+/// `Vec3A` does each min and max in one SSE instruction where `Vec3` needs
+/// three scalar ones (measured: see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BinBox {
+    pub min: Vec3A,
+    pub max: Vec3A,
+}
+
+impl BinBox {
+    pub const EMPTY: BinBox = BinBox {
+        min: Vec3A::splat(f32::INFINITY),
+        max: Vec3A::splat(f32::NEG_INFINITY),
+    };
+
+    #[inline(always)]
+    pub fn from_aabb(b: &Aabb) -> Self {
+        Self {
+            min: b.min.into(),
+            max: b.max.into(),
+        }
+    }
+
+    #[inline(always)]
+    pub fn union(self, o: BinBox) -> Self {
+        Self {
+            min: self.min.min(o.min),
+            max: self.max.max(o.max),
+        }
+    }
+
+    #[inline(always)]
+    pub fn half_area(&self) -> f32 {
+        let e = (self.max - self.min).max(Vec3A::ZERO);
+        e.x * e.y + e.y * e.z + e.z * e.x
+    }
+
+    #[inline(always)]
+    pub fn to_aabb(self) -> Aabb {
+        Aabb::new(self.min.into(), self.max.into())
     }
 }
 
@@ -114,9 +163,10 @@ impl<const N: usize> Bins<N> {
     #[inline(always)]
     pub fn add(&mut self, map: &BinMapping, bounds: &Aabb, centroid: Vec3, weight: u64) {
         let b = map.bins3(centroid);
+        let bb = BinBox::from_aabb(bounds);
         for (axis, &bin) in b.iter().enumerate() {
             let slot = &mut self.bounds[axis][bin];
-            *slot = slot.union(*bounds);
+            *slot = slot.union(bb);
             self.weight[axis][bin] += weight;
         }
     }
@@ -140,13 +190,13 @@ impl<const N: usize> Bins<N> {
         debug_assert!(n <= N);
         let mut right_area = [0.0f32; N];
         let mut right_weight = [0u64; N];
-        let mut right_box = [Aabb::EMPTY; N];
+        let mut right_box = [BinBox::EMPTY; N];
         for axis in 0..3 {
             if !map.axis_usable(axis) {
                 continue;
             }
             // Suffix sweep: right side of plane i holds bins i..n.
-            let mut b = Aabb::EMPTY;
+            let mut b = BinBox::EMPTY;
             let mut w = 0u64;
             for i in (1..n).rev() {
                 b = b.union(self.bounds[axis][i]);
@@ -155,7 +205,7 @@ impl<const N: usize> Bins<N> {
                 right_weight[i] = w;
                 right_box[i] = b;
             }
-            let mut b = Aabb::EMPTY;
+            let mut b = BinBox::EMPTY;
             let mut w = 0u64;
             for i in 1..n {
                 b = b.union(self.bounds[axis][i - 1]);
@@ -169,8 +219,8 @@ impl<const N: usize> Bins<N> {
                         axis,
                         bin: i,
                         cost,
-                        left_bounds: b,
-                        right_bounds: right_box[i],
+                        left_bounds: b.to_aabb(),
+                        right_bounds: right_box[i].to_aabb(),
                         left_weight: w,
                         right_weight: right_weight[i],
                     });

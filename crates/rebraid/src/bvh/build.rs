@@ -204,23 +204,31 @@ struct RangeBinner<'a, 'b> {
 impl BinRange for RangeBinner<'_, '_> {
     fn run<const N: usize>(&self, map: &BinMapping) -> Option<SplitCandidate> {
         let ctx = self.ctx;
-        let bin_chunk = |chunk: &[u32]| {
-            let mut bins = Bins::<N>::default();
+        // Bins are filled in place: returning them by value copied up to
+        // 3.8 KB per node (7% of a build in `memmove`).
+        let fill = |bins: &mut Bins<N>, chunk: &[u32]| {
             for &p in chunk {
                 bins.add(map, &ctx.boxes[p as usize], ctx.centroids[p as usize], 1);
             }
-            bins
         };
+        let mut all = Bins::<N>::default();
         if self.prims.len() >= PARALLEL_BINNING_MIN {
-            let parts: Vec<Bins<N>> = self.prims.par_chunks(CHUNK).map(bin_chunk).collect();
-            let mut all = Bins::<N>::default();
+            let parts: Vec<Bins<N>> = self
+                .prims
+                .par_chunks(CHUNK)
+                .map(|chunk| {
+                    let mut bins = Bins::<N>::default();
+                    fill(&mut bins, chunk);
+                    bins
+                })
+                .collect();
             for p in &parts {
                 all.merge(p, map.bins);
             }
-            all.best_split(map)
         } else {
-            bin_chunk(self.prims).best_split(map)
+            fill(&mut all, self.prims);
         }
+        all.best_split(map)
     }
 }
 

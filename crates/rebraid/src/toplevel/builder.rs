@@ -600,7 +600,12 @@ impl BinRange for ListBinner<'_> {
                 })
                 .best_split(map)
         } else {
-            bin_chunk(self.list).best_split(map)
+            // Filled in place (a returned `Bins` would be copied).
+            let mut bins = Bins::<N>::default();
+            for r in self.list {
+                bins.add(map, &r.bounds, r.bounds.center(), r.weight());
+            }
+            bins.best_split(map)
         }
     }
 }
