@@ -4,15 +4,19 @@ pub mod binning;
 mod build;
 mod node;
 mod refit;
+pub mod simd;
 mod stats;
 mod traverse;
 mod validate;
+pub mod wide;
 
 pub(crate) use build::compact_slots;
 pub use build::{BuildParams, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh};
 pub use node::BvhNode;
+pub use simd::{Kernel, WIDE_STACK, WideMeshBvh};
 pub use stats::{BvhStats, SahCosts};
 pub use traverse::{BoxRay, TRAVERSAL_STACK, TraversalCounters, TraversalStack};
+pub use wide::{WideBvh, WideNode, WideStats};
 
 /// A binary BVH over primitives known only by index.
 ///

@@ -1,0 +1,587 @@
+//! Single-ray traversal of wide BVHs with SIMD box tests, and the wide mesh
+//! BVH that uses them.
+//!
+//! One ray at a time tests all `W` children of a node at once (Wald et al.
+//! 2008, "Getting Rid of Packets"; Dammertz et al. 2008, "Shallow Bounding
+//! Volume Hierarchies"), then visits the nearest hit child and pushes the
+//! others, sorted by entry distance so that the nearest pops first. Popped
+//! entries farther than the current closest hit are skipped.
+//!
+//! Kernels ([`Kernel`]): a portable scalar-lane reference that loops over the
+//! lanes with the binary traversal's own [`BoxRay::hit_node`]; SSE4.1 (four
+//! lanes, two halves for `W = 8`); AVX2+FMA (eight lanes, `W = 8`). The SIMD
+//! box test reproduces `hit_node` exactly: the same `(plane - origin) *
+//! inv_dir` products (no FMA contraction, so the same roundings), a NaN in
+//! either distance of an axis (origin on a slab plane, zero direction
+//! component) widening that slab to `(-inf, inf)`, and the far distance
+//! clamped to `t_max` and then padded by `1 + 2 gamma(3)` (T. Ize, "Robust
+//! BVH Ray Traversal", JCGT 2(2), 2013). The near plane of each axis is
+//! picked per ray by the direction's sign (Williams et al. 2005), which gives
+//! the same values as `hit_node`'s min/max for real boxes and keeps the empty
+//! slots' inverted boxes unhittable. Leaves run the scalar watertight
+//! triangle test over the same leaf-order triangles, so hits are
+//! bit-identical to [`MeshBvh`]'s.
+
+use std::mem::MaybeUninit;
+
+use glam::Vec3;
+
+use super::wide::{WideBvh, WideNode, WideStats, decode_leaf, is_leaf_ref};
+use super::{BoxRay, BvhNode, MAX_DEPTH};
+use crate::mesh::MeshBvh;
+use crate::triangle::{WatertightRay, geometric_normal, intersect_triangle};
+use crate::{Aabb, Error, Hit, INVALID_ID, Ray};
+
+/// The slab test's padding, the same constant as the binary traversal's
+/// (`1 + 2 * gamma(3)`, Ize 2013).
+const ROBUST_FAR: f32 = 1.0 + 2.0 * (3.0 * f32::EPSILON * 0.5) / (1.0 - 3.0 * f32::EPSILON * 0.5);
+
+/// Entries of a wide traversal stack. The stack only holds siblings of the
+/// nodes on the current path, at most `W - 1` per level; a wide inner node
+/// is a binary inner node strictly deeper than its wide parent's, so the
+/// wide depth is below [`MAX_DEPTH`] and `7 * MAX_DEPTH` covers `W <= 8`.
+pub const WIDE_STACK: usize = 7 * MAX_DEPTH as usize;
+
+/// A traversal kernel of a wide BVH.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Kernel {
+    /// Portable: loops over the lanes with [`BoxRay::hit_node`].
+    Scalar,
+    /// SSE4.1, four lanes per instruction (`W = 8` in two halves).
+    Sse,
+    /// AVX2+FMA, eight lanes per instruction; a `W = 4` tree runs the SSE
+    /// kernel under it (every AVX2 CPU has SSE4.1).
+    Avx2,
+}
+
+impl Kernel {
+    pub const ALL: [Kernel; 3] = [Kernel::Scalar, Kernel::Sse, Kernel::Avx2];
+
+    /// True when this CPU can run the kernel (detected at run time).
+    pub fn is_available(self) -> bool {
+        match self {
+            Kernel::Scalar => true,
+            #[cfg(target_arch = "x86_64")]
+            Kernel::Sse => std::arch::is_x86_feature_detected!("sse4.1"),
+            #[cfg(target_arch = "x86_64")]
+            Kernel::Avx2 => {
+                std::arch::is_x86_feature_detected!("avx2")
+                    && std::arch::is_x86_feature_detected!("fma")
+            }
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => false,
+        }
+    }
+
+    /// The fastest kernel this CPU runs.
+    pub fn best() -> Kernel {
+        [Kernel::Avx2, Kernel::Sse]
+            .into_iter()
+            .find(|k| k.is_available())
+            .unwrap_or(Kernel::Scalar)
+    }
+
+    /// Every kernel this CPU runs.
+    pub fn available() -> Vec<Kernel> {
+        Self::ALL.into_iter().filter(|k| k.is_available()).collect()
+    }
+}
+
+/// Tests a ray against the `W` child boxes of a node: returns the mask of
+/// hit children and writes their entry distances to `dist`. A lane is hit
+/// exactly when [`BoxRay::hit_node`] would return a finite distance for it.
+trait BoxTester<const W: usize> {
+    fn test(&self, node: &WideNode<W>, t_max: f32, dist: &mut [f32; W]) -> u32;
+}
+
+/// The reference: the binary traversal's test, lane by lane.
+struct ScalarTester {
+    ray: BoxRay,
+    t_min: f32,
+}
+
+impl<const W: usize> BoxTester<W> for ScalarTester {
+    #[inline(always)]
+    fn test(&self, node: &WideNode<W>, t_max: f32, dist: &mut [f32; W]) -> u32 {
+        let mut mask = 0;
+        for (i, d) in dist.iter_mut().enumerate() {
+            // `hit_node` takes min/max per axis, which would make an empty
+            // slot's inverted box the whole space: skip empty slots.
+            if node.child[i] == super::wide::WIDE_EMPTY {
+                continue;
+            }
+            let b = BvhNode::inner(node.child_bounds(i), 0);
+            *d = self.ray.hit_node(&b, self.t_min, t_max);
+            if *d < f32::INFINITY {
+                mask |= 1 << i;
+            }
+        }
+        mask
+    }
+}
+
+/// Per-ray plane selection of the SIMD testers: the index into
+/// [`WideNode::planes`] of each axis's near and far plane.
+#[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+fn plane_order(inv_dir: Vec3) -> ([usize; 3], [usize; 3]) {
+    let mut near = [0, 1, 2];
+    let mut far = [3, 4, 5];
+    for a in 0..3 {
+        if inv_dir[a].is_sign_negative() {
+            std::mem::swap(&mut near[a], &mut far[a]);
+        }
+    }
+    (near, far)
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use core::arch::x86_64::*;
+
+    use super::{BoxTester, ROBUST_FAR, plane_order};
+    use crate::bvh::wide::WideNode;
+    use glam::Vec3;
+
+    /// Four lanes per step; any `W` that is a multiple of 4.
+    pub(super) struct SseTester {
+        origin: [__m128; 3],
+        inv_dir: [__m128; 3],
+        near: [usize; 3],
+        far: [usize; 3],
+        t_min: __m128,
+        /// Some direction component is zero: NaN distances are possible.
+        fix_nan: bool,
+    }
+
+    impl SseTester {
+        /// Callers must run on a CPU with SSE4.1: the tester's existence is
+        /// what [`SseTester::test`] relies on.
+        #[target_feature(enable = "sse4.1")]
+        pub(super) fn new(origin: Vec3, dir: Vec3, t_min: f32) -> Self {
+            let inv = Vec3::ONE / dir;
+            let (near, far) = plane_order(inv);
+            Self {
+                origin: [
+                    _mm_set1_ps(origin.x),
+                    _mm_set1_ps(origin.y),
+                    _mm_set1_ps(origin.z),
+                ],
+                inv_dir: [_mm_set1_ps(inv.x), _mm_set1_ps(inv.y), _mm_set1_ps(inv.z)],
+                near,
+                far,
+                t_min: _mm_set1_ps(t_min),
+                fix_nan: !inv.is_finite(),
+            }
+        }
+    }
+
+    impl<const W: usize> BoxTester<W> for SseTester {
+        #[inline(always)]
+        fn test(&self, node: &WideNode<W>, t_max: f32, dist: &mut [f32; W]) -> u32 {
+            let planes = node.planes();
+            let mut mask = 0u32;
+            for g in 0..W / 4 {
+                // SAFETY: an `SseTester` exists only on CPUs with SSE4.1 (its
+                // constructor is a `target_feature` fn whose callers check
+                // it); every load and store reads or writes four in-bounds
+                // floats at `4 * g` of a `[f32; W]`, `W` a multiple of 4.
+                unsafe {
+                    let mut near = self.t_min;
+                    let mut far = _mm_set1_ps(t_max);
+                    for a in 0..3 {
+                        let pn = _mm_loadu_ps(planes[self.near[a]].as_ptr().add(4 * g));
+                        let pf = _mm_loadu_ps(planes[self.far[a]].as_ptr().add(4 * g));
+                        let mut tn = _mm_mul_ps(_mm_sub_ps(pn, self.origin[a]), self.inv_dir[a]);
+                        let mut tf = _mm_mul_ps(_mm_sub_ps(pf, self.origin[a]), self.inv_dir[a]);
+                        if self.fix_nan {
+                            let nan = _mm_cmpunord_ps(tn, tf);
+                            tn = _mm_blendv_ps(tn, _mm_set1_ps(f32::NEG_INFINITY), nan);
+                            tf = _mm_blendv_ps(tf, _mm_set1_ps(f32::INFINITY), nan);
+                        }
+                        near = _mm_max_ps(near, tn);
+                        far = _mm_min_ps(far, tf);
+                    }
+                    far = _mm_mul_ps(far, _mm_set1_ps(ROBUST_FAR));
+                    let hit = _mm_and_ps(
+                        _mm_cmple_ps(near, far),
+                        _mm_cmplt_ps(near, _mm_set1_ps(f32::INFINITY)),
+                    );
+                    _mm_storeu_ps(dist.as_mut_ptr().add(4 * g), near);
+                    mask |= (_mm_movemask_ps(hit) as u32) << (4 * g);
+                }
+            }
+            mask
+        }
+    }
+
+    /// Eight lanes in one step, `W = 8`.
+    pub(super) struct Avx2Tester {
+        origin: [__m256; 3],
+        inv_dir: [__m256; 3],
+        near: [usize; 3],
+        far: [usize; 3],
+        t_min: __m256,
+        fix_nan: bool,
+    }
+
+    impl Avx2Tester {
+        /// Callers must run on a CPU with AVX2 and FMA (see [`SseTester::new`]).
+        #[target_feature(enable = "avx2,fma")]
+        pub(super) fn new(origin: Vec3, dir: Vec3, t_min: f32) -> Self {
+            let inv = Vec3::ONE / dir;
+            let (near, far) = plane_order(inv);
+            Self {
+                origin: [
+                    _mm256_set1_ps(origin.x),
+                    _mm256_set1_ps(origin.y),
+                    _mm256_set1_ps(origin.z),
+                ],
+                inv_dir: [
+                    _mm256_set1_ps(inv.x),
+                    _mm256_set1_ps(inv.y),
+                    _mm256_set1_ps(inv.z),
+                ],
+                near,
+                far,
+                t_min: _mm256_set1_ps(t_min),
+                fix_nan: !inv.is_finite(),
+            }
+        }
+    }
+
+    impl BoxTester<8> for Avx2Tester {
+        #[inline(always)]
+        fn test(&self, node: &WideNode<8>, t_max: f32, dist: &mut [f32; 8]) -> u32 {
+            let planes = node.planes();
+            // SAFETY: an `Avx2Tester` exists only on CPUs with AVX2 and FMA
+            // (see `Avx2Tester::new`); each load and the store cover exactly
+            // one `[f32; 8]`. The products are separate mul/sub, never FMA,
+            // so they round exactly as `BoxRay::hit_node`'s.
+            unsafe {
+                let mut near = self.t_min;
+                let mut far = _mm256_set1_ps(t_max);
+                for a in 0..3 {
+                    let pn = _mm256_loadu_ps(planes[self.near[a]].as_ptr());
+                    let pf = _mm256_loadu_ps(planes[self.far[a]].as_ptr());
+                    let mut tn = _mm256_mul_ps(_mm256_sub_ps(pn, self.origin[a]), self.inv_dir[a]);
+                    let mut tf = _mm256_mul_ps(_mm256_sub_ps(pf, self.origin[a]), self.inv_dir[a]);
+                    if self.fix_nan {
+                        let nan = _mm256_cmp_ps::<_CMP_UNORD_Q>(tn, tf);
+                        tn = _mm256_blendv_ps(tn, _mm256_set1_ps(f32::NEG_INFINITY), nan);
+                        tf = _mm256_blendv_ps(tf, _mm256_set1_ps(f32::INFINITY), nan);
+                    }
+                    near = _mm256_max_ps(near, tn);
+                    far = _mm256_min_ps(far, tf);
+                }
+                far = _mm256_mul_ps(far, _mm256_set1_ps(ROBUST_FAR));
+                let hit = _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(near, far),
+                    _mm256_cmp_ps::<_CMP_LT_OQ>(near, _mm256_set1_ps(f32::INFINITY)),
+                );
+                _mm256_storeu_ps(dist.as_mut_ptr(), near);
+                _mm256_movemask_ps(hit) as u32
+            }
+        }
+    }
+}
+
+/// The traversal loop shared by every kernel. `leaf(first, count, t_max)`
+/// handles a leaf's primitive slots, may shrink `t_max` (closest hit) and
+/// returns `true` to stop (any hit). The root's box has been tested already.
+#[inline(always)]
+fn traverse<const W: usize, B, L>(nodes: &[WideNode<W>], tester: &B, mut t_max: f32, mut leaf: L)
+where
+    B: BoxTester<W>,
+    L: FnMut(u32, u32, &mut f32) -> bool,
+{
+    let mut stack = [MaybeUninit::<(u32, f32)>::uninit(); WIDE_STACK];
+    let mut sp = 0usize;
+    let mut current = 0u32;
+    loop {
+        if is_leaf_ref(current) {
+            let (first, count) = decode_leaf(current);
+            if leaf(first, count, &mut t_max) {
+                return;
+            }
+        } else {
+            let node = &nodes[current as usize];
+            let mut dist = [0.0f32; W];
+            let mut mask = tester.test(node, t_max, &mut dist);
+            if mask != 0 {
+                let i = mask.trailing_zeros() as usize;
+                mask &= mask - 1;
+                if mask == 0 {
+                    current = node.child[i];
+                    continue;
+                }
+                // Two or more hits: insertion-sort them by entry distance
+                // (stable, so equal distances keep slot order), push all but
+                // the nearest, farthest first, and go to the nearest.
+                let mut hits = [(0.0f32, 0u32); W];
+                hits[0] = (dist[i], node.child[i]);
+                let mut n = 1;
+                while mask != 0 {
+                    let i = mask.trailing_zeros() as usize;
+                    mask &= mask - 1;
+                    let item = (dist[i], node.child[i]);
+                    let mut j = n;
+                    while j > 0 && hits[j - 1].0 > item.0 {
+                        hits[j] = hits[j - 1];
+                        j -= 1;
+                    }
+                    hits[j] = item;
+                    n += 1;
+                }
+                for &(d, r) in hits[1..n].iter().rev() {
+                    stack[sp].write((r, d));
+                    sp += 1;
+                }
+                current = hits[0].1;
+                continue;
+            }
+        }
+        // Pop, skipping entries a shrunken t_max now culls (the same test
+        // as the binary traversal's).
+        loop {
+            if sp == 0 {
+                return;
+            }
+            sp -= 1;
+            // SAFETY: entries below `sp` were all written by the push above
+            // (`sp` only grows by writing `stack[sp]`).
+            let (r, d) = unsafe { stack[sp].assume_init() };
+            if d <= t_max * ROBUST_FAR {
+                current = r;
+                break;
+            }
+        }
+    }
+}
+
+/// A wide BVH over one mesh, collapsed from a [`MeshBvh`].
+///
+/// It owns a copy of the leaf-order triangles and primitive ids rather than
+/// borrowing the `MeshBvh`: no lifetime parameter for the scene and the top
+/// level to carry later, and the copy (40 bytes per triangle) is cheap next
+/// to the build; the binary tree may be dropped afterwards.
+#[derive(Clone, Debug)]
+pub struct WideMeshBvh<const W: usize> {
+    pub wide: WideBvh<W>,
+    /// Vertices of each triangle, in the binary tree's leaf order.
+    pub triangles: Vec<[Vec3; 3]>,
+    /// Mesh primitive id of each leaf-order slot.
+    pub prim_indices: Vec<u32>,
+    /// Private so that it always names a kernel this CPU runs.
+    kernel: Kernel,
+}
+
+impl<const W: usize> WideMeshBvh<W> {
+    /// Collapse the mesh BVH's tree (see [`WideBvh::from_bvh`]) and copy its
+    /// triangles; the kernel is [`Kernel::best`].
+    pub fn from_mesh(mesh: &MeshBvh) -> Result<Self, Error> {
+        Ok(Self {
+            wide: WideBvh::from_bvh(&mesh.bvh)?,
+            triangles: mesh.triangles.clone(),
+            prim_indices: mesh.bvh.prim_indices.clone(),
+            kernel: Kernel::best(),
+        })
+    }
+
+    /// The kernel [`WideMeshBvh::intersect`] and friends use.
+    pub fn kernel(&self) -> Kernel {
+        self.kernel
+    }
+
+    /// Use `kernel` from now on; fails when this CPU cannot run it.
+    pub fn set_kernel(&mut self, kernel: Kernel) -> Result<(), Error> {
+        if !kernel.is_available() {
+            return Err(Error::InvalidParameter(format!(
+                "kernel {kernel:?} is not supported by this CPU"
+            )));
+        }
+        self.kernel = kernel;
+        Ok(())
+    }
+
+    #[inline]
+    pub fn len(&self) -> usize {
+        self.triangles.len()
+    }
+
+    #[inline]
+    pub fn is_empty(&self) -> bool {
+        self.triangles.is_empty()
+    }
+
+    /// Closest hit along the ray, if any.
+    #[inline]
+    pub fn intersect(&self, ray: &Ray) -> Option<Hit> {
+        self.query::<false>(self.kernel, ray)
+            .map(|h| self.make_hit(h))
+    }
+
+    /// True when anything is hit within `[t_min, t_max]`.
+    #[inline]
+    pub fn occluded(&self, ray: &Ray) -> bool {
+        self.query::<true>(self.kernel, ray).is_some()
+    }
+
+    /// [`WideMeshBvh::intersect`] with a given kernel (panics if this CPU
+    /// cannot run it): for tests and benchmarks.
+    pub fn intersect_with(&self, kernel: Kernel, ray: &Ray) -> Option<Hit> {
+        assert!(kernel.is_available(), "{kernel:?} is not available");
+        self.query::<false>(kernel, ray).map(|h| self.make_hit(h))
+    }
+
+    /// [`WideMeshBvh::occluded`] with a given kernel (panics if this CPU
+    /// cannot run it).
+    pub fn occluded_with(&self, kernel: Kernel, ray: &Ray) -> bool {
+        assert!(kernel.is_available(), "{kernel:?} is not available");
+        self.query::<true>(kernel, ray).is_some()
+    }
+
+    /// Closest hits of many rays, in parallel; `out[i]` answers `rays[i]`.
+    pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
+        crate::ray::par_query(rays, out, |r| self.intersect(r));
+    }
+
+    /// Occlusion of many rays, in parallel; `out[i]` answers `rays[i]`.
+    pub fn occluded_batch(&self, rays: &[Ray], out: &mut [bool]) {
+        crate::ray::par_query(rays, out, |r| self.occluded(r));
+    }
+
+    /// Node statistics; `bytes` adds the triangles and primitive ids.
+    pub fn stats(&self) -> WideStats {
+        let mut s = self.wide.stats();
+        s.bytes += std::mem::size_of_val(self.triangles.as_slice())
+            + std::mem::size_of_val(self.prim_indices.as_slice());
+        s
+    }
+
+    /// Validate the wide tree against the triangles it stores.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.prim_indices.len() != self.triangles.len() {
+            return Err("primitive ids and triangles differ in number".into());
+        }
+        let boxes: Vec<Aabb> = self
+            .triangles
+            .iter()
+            .map(|t| Aabb::from_points(t))
+            .collect();
+        self.wide.validate(&boxes)
+    }
+
+    fn make_hit(&self, (t, u, v, k): (f32, f32, f32, u32)) -> Hit {
+        let [a, b, c] = self.triangles[k as usize];
+        Hit {
+            t,
+            u,
+            v,
+            prim_id: self.prim_indices[k as usize],
+            object_id: INVALID_ID,
+            instance_id: INVALID_ID,
+            normal: geometric_normal(a, b, c).normalize_or_zero(),
+        }
+    }
+
+    /// The closest (or, with `ANY`, some) hit as (t, u, v, leaf-order slot).
+    /// `kernel` must be available (checked by every caller).
+    #[inline(always)]
+    fn query<const ANY: bool>(&self, kernel: Kernel, ray: &Ray) -> Option<(f32, f32, f32, u32)> {
+        if !ray.is_valid() || self.wide.is_empty() {
+            return None;
+        }
+        let root = BvhNode::inner(self.wide.root_bounds, 0);
+        let bray = BoxRay::new(ray.origin, ray.dir);
+        if bray.hit_node(&root, ray.t_min, ray.t_max) == f32::INFINITY {
+            return None;
+        }
+        match kernel {
+            #[cfg(target_arch = "x86_64")]
+            Kernel::Avx2 if W == 8 => {
+                // SAFETY: `kernel` is available (callers check it), so the
+                // CPU has AVX2 and FMA.
+                unsafe { self.query_avx2::<ANY>(ray) }
+            }
+            #[cfg(target_arch = "x86_64")]
+            Kernel::Sse | Kernel::Avx2 => {
+                // SAFETY: `kernel` is available; AVX2 CPUs have SSE4.1 too.
+                unsafe { self.query_sse::<ANY>(ray) }
+            }
+            _ => {
+                let tester = ScalarTester {
+                    ray: bray,
+                    t_min: ray.t_min,
+                };
+                self.run::<ANY, _>(&tester, ray)
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "sse4.1")]
+    fn query_sse<const ANY: bool>(&self, ray: &Ray) -> Option<(f32, f32, f32, u32)> {
+        let tester = x86::SseTester::new(ray.origin, ray.dir, ray.t_min);
+        self.run::<ANY, _>(&tester, ray)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    fn query_avx2<const ANY: bool>(&self, ray: &Ray) -> Option<(f32, f32, f32, u32)> {
+        let tester = x86::Avx2Tester::new(ray.origin, ray.dir, ray.t_min);
+        // `W == 8` on this path (see `query`); the cast is a no-op then.
+        let nodes: &[WideNode<8>] = {
+            assert_eq!(W, 8);
+            // SAFETY: `W == 8`, so `WideNode<W>` and `WideNode<8>` are the
+            // same type.
+            unsafe {
+                std::slice::from_raw_parts(
+                    self.wide.nodes.as_ptr() as *const WideNode<8>,
+                    self.wide.nodes.len(),
+                )
+            }
+        };
+        run_on::<8, ANY, _>(nodes, &self.triangles, &tester, ray)
+    }
+
+    #[inline(always)]
+    fn run<const ANY: bool, B: BoxTester<W>>(
+        &self,
+        tester: &B,
+        ray: &Ray,
+    ) -> Option<(f32, f32, f32, u32)> {
+        run_on::<W, ANY, B>(&self.wide.nodes, &self.triangles, tester, ray)
+    }
+}
+
+/// One query over a wide tree with the scalar watertight test in the leaves
+/// (the same loop and tie rule as [`MeshBvh::intersect_leaf`] and
+/// [`MeshBvh::occluded_leaf`]).
+#[inline(always)]
+fn run_on<const W: usize, const ANY: bool, B: BoxTester<W>>(
+    nodes: &[WideNode<W>],
+    triangles: &[[Vec3; 3]],
+    tester: &B,
+    ray: &Ray,
+) -> Option<(f32, f32, f32, u32)> {
+    let wray = WatertightRay::new(ray.origin, ray.dir);
+    let t_min = ray.t_min;
+    let mut best: Option<(f32, f32, f32, u32)> = None;
+    traverse(nodes, tester, ray.t_max, |first, count, t_max| {
+        for k in first..first + count {
+            let [a, b, c] = triangles[k as usize];
+            if let Some((t, u, v)) = intersect_triangle(&wray, a, b, c, t_min, *t_max) {
+                if ANY {
+                    best = Some((t, u, v, k));
+                    return true;
+                }
+                if best.is_none_or(|h| t < h.0) {
+                    *t_max = t;
+                    best = Some((t, u, v, k));
+                }
+            }
+        }
+        false
+    });
+    best
+}

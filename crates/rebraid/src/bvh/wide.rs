@@ -1,0 +1,380 @@
+//! Wide (4- and 8-ary) BVH layouts, collapsed from the binary [`Bvh`].
+//!
+//! Wide BVHs test the boxes of all children of a node with one SIMD
+//! instruction sequence (I. Wald, C. Benthin, S. Boulos, "Getting Rid of
+//! Packets: Efficient SIMD Single-Ray Traversal using Multi-branching BVHs",
+//! RT 2008; H. Dammertz, J. Hanika, A. Keller, "Shallow Bounding Volume
+//! Hierarchies for Fast SIMD Ray Tracing of Incoherent Rays", EGSR 2008).
+//! As in Embree's BVH4/BVH8, they are not built directly but collapsed from
+//! a binary SAH tree: starting from a node's two children, the inner child
+//! with the largest surface area is repeatedly replaced by its own two
+//! children until the node has `W` children or only leaves remain. Opening
+//! the largest box first removes the box most likely to be hit (the SAH's
+//! hit probability is proportional to area), so the collapse keeps the
+//! binary tree's SAH ordering while cutting its depth by about `log2(W)`.
+//!
+//! Leaves keep the binary tree's leaf ranges, so they index the binary
+//! tree's primitive order (a [`crate::MeshBvh`]'s leaf-order triangles)
+//! directly.
+
+use glam::Vec3;
+
+use super::{Bvh, MAX_DEPTH};
+use crate::{Aabb, Error};
+
+/// Flag bit of a child reference that is a leaf.
+pub const WIDE_LEAF_FLAG: u32 = 1 << 31;
+/// Bits of a leaf reference that hold `count - 1`.
+pub const WIDE_LEAF_COUNT_BITS: u32 = 4;
+/// Most primitives in one wide leaf (binary leaves larger than this are
+/// rejected by [`WideBvh::from_bvh`]; the default `max_leaf_size` is 8).
+pub const WIDE_MAX_LEAF_COUNT: u32 = 1 << WIDE_LEAF_COUNT_BITS;
+/// Most primitives a wide BVH can index (27 bits of first-primitive index).
+pub const WIDE_MAX_PRIMITIVES: usize = 1 << (31 - WIDE_LEAF_COUNT_BITS);
+/// The reference of an empty child slot (its box can never be hit).
+pub const WIDE_EMPTY: u32 = u32::MAX;
+
+/// Encode a leaf over the primitives `first .. first + count`.
+#[inline(always)]
+pub const fn encode_leaf(first: u32, count: u32) -> u32 {
+    WIDE_LEAF_FLAG | (first << WIDE_LEAF_COUNT_BITS) | (count - 1)
+}
+
+/// Decode a leaf reference into `(first, count)`.
+#[inline(always)]
+pub const fn decode_leaf(r: u32) -> (u32, u32) {
+    (
+        (r & !WIDE_LEAF_FLAG) >> WIDE_LEAF_COUNT_BITS,
+        (r & (WIDE_MAX_LEAF_COUNT - 1)) + 1,
+    )
+}
+
+/// True when a child reference is a leaf (or the empty slot marker, which
+/// traversal never follows because its box is never hit).
+#[inline(always)]
+pub const fn is_leaf_ref(r: u32) -> bool {
+    r & WIDE_LEAF_FLAG != 0
+}
+
+/// A node of a `W`-wide BVH: the boxes of its `W` children in SoA form (one
+/// SIMD load per plane) and one `u32` reference per child.
+///
+/// `child[i]` is an inner node's index in [`WideBvh::nodes`], a leaf made by
+/// [`encode_leaf`], or [`WIDE_EMPTY`]. Children fill the first slots; empty
+/// slots have `min = +inf`, `max = -inf`, which the slab test of
+/// [`super::simd`] can never hit (it picks the near plane by the direction's
+/// sign, so an inverted box yields an entry at `+inf` and an exit at `-inf`).
+///
+/// 32-byte alignment lets AVX load each plane of a `W = 8` node without
+/// crossing a cache line; `W = 4` nodes (112 bytes of data) are padded to
+/// 128 bytes by it, two whole cache lines when the array is so aligned.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C, align(32))]
+pub struct WideNode<const W: usize> {
+    pub min_x: [f32; W],
+    pub min_y: [f32; W],
+    pub min_z: [f32; W],
+    pub max_x: [f32; W],
+    pub max_y: [f32; W],
+    pub max_z: [f32; W],
+    pub child: [u32; W],
+}
+
+const _: () = assert!(std::mem::size_of::<WideNode<4>>() == 128);
+const _: () = assert!(std::mem::size_of::<WideNode<8>>() == 224);
+const _: () = assert!(std::mem::align_of::<WideNode<8>>() == 32);
+
+impl<const W: usize> WideNode<W> {
+    /// A node with every slot empty.
+    pub const EMPTY: Self = Self {
+        min_x: [f32::INFINITY; W],
+        min_y: [f32::INFINITY; W],
+        min_z: [f32::INFINITY; W],
+        max_x: [f32::NEG_INFINITY; W],
+        max_y: [f32::NEG_INFINITY; W],
+        max_z: [f32::NEG_INFINITY; W],
+        child: [WIDE_EMPTY; W],
+    };
+
+    /// The six planes as one array: `[min_x, min_y, min_z, max_x, max_y,
+    /// max_z]`, so a kernel can pick the near plane of an axis by index.
+    #[inline(always)]
+    pub fn planes(&self) -> &[[f32; W]; 6] {
+        // SAFETY: `repr(C)` lays the six `[f32; W]` fields out in declaration
+        // order with no padding between them (each has the alignment of
+        // f32 and a size that is a multiple of it), so they are exactly one
+        // `[[f32; W]; 6]` at the start of the struct, which is aligned for it.
+        unsafe { &*(self as *const Self as *const [[f32; W]; 6]) }
+    }
+
+    /// Box of child slot `i` (inverted for an empty slot).
+    #[inline]
+    pub fn child_bounds(&self, i: usize) -> Aabb {
+        Aabb::new(
+            Vec3::new(self.min_x[i], self.min_y[i], self.min_z[i]),
+            Vec3::new(self.max_x[i], self.max_y[i], self.max_z[i]),
+        )
+    }
+
+    /// Number of occupied slots (they come first).
+    #[inline]
+    pub fn child_count(&self) -> usize {
+        self.child.iter().take_while(|&&c| c != WIDE_EMPTY).count()
+    }
+
+    fn set_child(&mut self, i: usize, b: &Aabb, r: u32) {
+        self.min_x[i] = b.min.x;
+        self.min_y[i] = b.min.y;
+        self.min_z[i] = b.min.z;
+        self.max_x[i] = b.max.x;
+        self.max_y[i] = b.max.y;
+        self.max_z[i] = b.max.z;
+        self.child[i] = r;
+    }
+}
+
+/// A `W`-wide BVH (`W` = 4 or 8). `nodes[0]` is the root when the tree is not
+/// empty; `root_bounds` is its box, tested before the root's children.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct WideBvh<const W: usize> {
+    pub nodes: Vec<WideNode<W>>,
+    pub root_bounds: Aabb,
+    /// Number of primitive slots the leaves cover (the binary tree's
+    /// `prim_indices.len()`).
+    pub prim_count: usize,
+}
+
+/// Size figures of a wide tree.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct WideStats {
+    pub nodes: usize,
+    pub leaves: usize,
+    /// Empty child slots over all nodes.
+    pub empty_slots: usize,
+    /// Depth of the deepest inner node (root = 1).
+    pub max_depth: u32,
+    /// Bytes of the node array.
+    pub bytes: usize,
+}
+
+impl<const W: usize> WideBvh<W> {
+    const WIDTH_OK: () = assert!(W == 4 || W == 8, "wide BVHs are 4 or 8 wide");
+
+    /// Collapse a binary tree (see the module docs). Fails when a binary leaf
+    /// holds more than [`WIDE_MAX_LEAF_COUNT`] primitives or the tree more
+    /// than [`WIDE_MAX_PRIMITIVES`].
+    pub fn from_bvh(bvh: &Bvh) -> Result<Self, Error> {
+        let () = Self::WIDTH_OK;
+        let prim_count = bvh.prim_indices.len();
+        if prim_count > WIDE_MAX_PRIMITIVES {
+            return Err(Error::TooManyPrimitives(prim_count));
+        }
+        if let Some(n) = bvh.nodes.iter().find(|n| n.count > WIDE_MAX_LEAF_COUNT) {
+            return Err(Error::InvalidParameter(format!(
+                "a binary leaf of {} primitives exceeds the wide leaf limit of {WIDE_MAX_LEAF_COUNT} \
+                 (build with max_leaf_size <= {WIDE_MAX_LEAF_COUNT})",
+                n.count
+            )));
+        }
+        let Some(root) = bvh.nodes.first() else {
+            return Ok(Self::default());
+        };
+        let bin = &bvh.nodes;
+        let mut nodes = Vec::with_capacity(bin.len() / (W - 1) + 1);
+        nodes.push(WideNode::EMPTY);
+        // (binary node to collapse, wide node to fill)
+        let mut work = vec![(0usize, 0usize)];
+        let mut kids: Vec<usize> = Vec::with_capacity(W);
+        while let Some((b, w)) = work.pop() {
+            kids.clear();
+            if bin[b].is_leaf() {
+                // Only a leaf root gets here: one leaf child.
+                kids.push(b);
+            } else {
+                let c = bin[b].index as usize;
+                kids.extend([c, c + 1]);
+            }
+            while kids.len() < W {
+                // The inner child of largest area (first of equals); areas
+                // may be infinite for huge boxes, never NaN for valid ones.
+                let mut best: Option<(usize, f32)> = None;
+                for (i, &k) in kids.iter().enumerate() {
+                    let n = &bin[k];
+                    let a = n.bounds().half_area();
+                    if !n.is_leaf() && best.is_none_or(|(_, ba)| a > ba) {
+                        best = Some((i, a));
+                    }
+                }
+                let Some((i, _)) = best else { break };
+                let c = bin[kids[i]].index as usize;
+                kids[i] = c;
+                kids.insert(i + 1, c + 1);
+            }
+            for (slot, &k) in kids.iter().enumerate() {
+                let n = &bin[k];
+                let r = if n.is_leaf() {
+                    encode_leaf(n.index, n.count)
+                } else {
+                    let idx = nodes.len();
+                    nodes.push(WideNode::EMPTY);
+                    work.push((k, idx));
+                    idx as u32
+                };
+                nodes[w].set_child(slot, &n.bounds(), r);
+            }
+        }
+        Ok(Self {
+            nodes,
+            root_bounds: root.bounds(),
+            prim_count,
+        })
+    }
+
+    #[inline]
+    pub fn is_empty(&self) -> bool {
+        self.nodes.is_empty()
+    }
+
+    /// Bytes of the node array.
+    pub fn bytes(&self) -> usize {
+        std::mem::size_of_val(self.nodes.as_slice())
+    }
+
+    /// Node, leaf and slot counts, depth and bytes.
+    pub fn stats(&self) -> WideStats {
+        let mut s = WideStats {
+            nodes: self.nodes.len(),
+            bytes: self.bytes(),
+            ..Default::default()
+        };
+        if self.nodes.is_empty() {
+            return s;
+        }
+        let mut stack = vec![(0usize, 1u32)];
+        while let Some((i, d)) = stack.pop() {
+            s.max_depth = s.max_depth.max(d);
+            for &r in &self.nodes[i].child {
+                if r == WIDE_EMPTY {
+                    s.empty_slots += 1;
+                } else if is_leaf_ref(r) {
+                    s.leaves += 1;
+                } else {
+                    stack.push((r as usize, d + 1));
+                }
+            }
+        }
+        s
+    }
+
+    /// Check the invariants the kernels rely on: every node reachable once,
+    /// every primitive slot in exactly one leaf, occupied slots first and
+    /// empty slots inverted (`+inf` / `-inf`), every child box inside the
+    /// slot box its parent holds for it (the root's inside `root_bounds`),
+    /// every primitive box inside its leaf's box, depth within
+    /// [`MAX_DEPTH`]. `prim_boxes` are indexed by primitive slot (leaf order).
+    pub fn validate(&self, prim_boxes: &[Aabb]) -> Result<(), String> {
+        if prim_boxes.len() != self.prim_count {
+            return Err(format!(
+                "{} primitive boxes for {} slots",
+                prim_boxes.len(),
+                self.prim_count
+            ));
+        }
+        if self.nodes.is_empty() {
+            return if self.prim_count == 0 {
+                Ok(())
+            } else {
+                Err("empty wide tree over primitives".into())
+            };
+        }
+        let mut seen_slot = vec![false; self.prim_count];
+        let mut seen_node = vec![false; self.nodes.len()];
+        seen_node[0] = true;
+        let mut stack = vec![(0usize, self.root_bounds, 1u32)];
+        while let Some((i, parent, depth)) = stack.pop() {
+            if depth > MAX_DEPTH {
+                return Err(format!("node {i} at depth {depth} > {MAX_DEPTH}"));
+            }
+            let node = &self.nodes[i];
+            let n = node.child_count();
+            if n == 0 {
+                return Err(format!("node {i} has no children"));
+            }
+            for s in 0..W {
+                let b = node.child_bounds(s);
+                let r = node.child[s];
+                if s >= n {
+                    if r != WIDE_EMPTY
+                        || node.child_bounds(s) != WideNode::<W>::EMPTY.child_bounds(0)
+                    {
+                        return Err(format!(
+                            "node {i} slot {s}: occupied after an empty slot, or an empty slot with a box"
+                        ));
+                    }
+                    continue;
+                }
+                if !parent.contains_box(&b) {
+                    return Err(format!(
+                        "node {i} slot {s}: box {b:?} not inside {parent:?}"
+                    ));
+                }
+                if is_leaf_ref(r) {
+                    let (first, count) = decode_leaf(r);
+                    let range = first as usize..(first + count) as usize;
+                    if range.end > self.prim_count {
+                        return Err(format!("node {i} slot {s}: leaf {range:?} out of bounds"));
+                    }
+                    for p in range {
+                        if std::mem::replace(&mut seen_slot[p], true) {
+                            return Err(format!("primitive slot {p} in two leaves"));
+                        }
+                        if !b.contains_box(&prim_boxes[p]) {
+                            return Err(format!("primitive slot {p} not inside its leaf box"));
+                        }
+                    }
+                } else {
+                    let k = r as usize;
+                    if k >= self.nodes.len() {
+                        return Err(format!("node {i} slot {s}: child {k} out of bounds"));
+                    }
+                    if std::mem::replace(&mut seen_node[k], true) {
+                        return Err(format!("node {k} reachable twice"));
+                    }
+                    stack.push((k, b, depth + 1));
+                }
+            }
+        }
+        if let Some(p) = seen_slot.iter().position(|s| !s) {
+            return Err(format!("primitive slot {p} not in any leaf"));
+        }
+        if let Some(k) = seen_node.iter().position(|s| !s) {
+            return Err(format!("node {k} unreachable"));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn leaf_encoding_round_trips() {
+        for (first, count) in [(0, 1), (5, 16), ((WIDE_MAX_PRIMITIVES - 1) as u32, 3)] {
+            let r = encode_leaf(first, count);
+            assert!(is_leaf_ref(r));
+            assert_ne!(r, WIDE_EMPTY);
+            assert_eq!(decode_leaf(r), (first, count));
+        }
+        assert!(!is_leaf_ref(12345));
+    }
+
+    #[test]
+    fn planes_alias_the_fields() {
+        let mut n = WideNode::<8>::EMPTY;
+        n.min_y[3] = 1.5;
+        n.max_z[7] = -2.0;
+        assert_eq!(n.planes()[1][3], 1.5);
+        assert_eq!(n.planes()[5][7], -2.0);
+    }
+}
