@@ -27,7 +27,7 @@ use std::mem::MaybeUninit;
 use glam::Vec3;
 
 use super::wide::{WideBvh, WideNode, WideStats, decode_leaf, is_leaf_ref};
-use super::{BoxRay, BvhNode, MAX_DEPTH};
+use super::{BoxRay, BvhNode, MAX_DEPTH, TraversalCounters};
 use crate::mesh::MeshBvh;
 use crate::triangle::{WatertightRay, geometric_normal, intersect_triangle};
 use crate::{Aabb, Error, Hit, INVALID_ID, Ray};
@@ -43,9 +43,11 @@ const ROBUST_FAR: f32 = 1.0 + 2.0 * (3.0 * f32::EPSILON * 0.5) / (1.0 - 3.0 * f3
 pub const WIDE_STACK: usize = 7 * MAX_DEPTH as usize;
 
 /// A traversal kernel of a wide BVH.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum Kernel {
-    /// Portable: loops over the lanes with [`BoxRay::hit_node`].
+    /// Portable: loops over the lanes with [`BoxRay::hit_node`]. The
+    /// default, as the one kernel every CPU runs.
+    #[default]
     Scalar,
     /// SSE4.1, four lanes per instruction (`W = 8` in two halves).
     Sse,
@@ -285,25 +287,34 @@ mod x86 {
     }
 }
 
-/// The traversal loop shared by every kernel. `leaf(first, count, t_max)`
-/// handles a leaf's primitive slots, may shrink `t_max` (closest hit) and
-/// returns `true` to stop (any hit). The root's box has been tested already.
+/// The traversal loop shared by every kernel, from wide node `start` (whose
+/// box the caller has tested). `leaf(first, count, t_max)` handles a leaf's
+/// primitive slots, may shrink `t_max` (closest hit) and returns `true` to
+/// stop (any hit).
 #[inline(always)]
-fn traverse<const W: usize, B, L>(nodes: &[WideNode<W>], tester: &B, mut t_max: f32, mut leaf: L)
-where
+fn traverse<const W: usize, B, L>(
+    nodes: &[WideNode<W>],
+    tester: &B,
+    start: u32,
+    mut t_max: f32,
+    counters: &mut TraversalCounters,
+    mut leaf: L,
+) where
     B: BoxTester<W>,
     L: FnMut(u32, u32, &mut f32) -> bool,
 {
     let mut stack = [MaybeUninit::<(u32, f32)>::uninit(); WIDE_STACK];
     let mut sp = 0usize;
-    let mut current = 0u32;
+    let mut current = start;
     loop {
         if is_leaf_ref(current) {
+            counters.leaves_visited += 1;
             let (first, count) = decode_leaf(current);
             if leaf(first, count, &mut t_max) {
                 return;
             }
         } else {
+            counters.inner_visited += 1;
             let node = &nodes[current as usize];
             let mut dist = [0.0f32; W];
             let mut mask = tester.test(node, t_max, &mut dist);
@@ -541,7 +552,15 @@ impl<const W: usize> WideMeshBvh<W> {
                 )
             }
         };
-        run_on::<8, ANY, _>(nodes, &self.triangles, &tester, ray)
+        run_on::<8, ANY, _>(
+            nodes,
+            &self.triangles,
+            &tester,
+            ray,
+            0,
+            ray.t_max,
+            &mut TraversalCounters::default(),
+        )
     }
 
     #[inline(always)]
@@ -550,7 +569,15 @@ impl<const W: usize> WideMeshBvh<W> {
         tester: &B,
         ray: &Ray,
     ) -> Option<(f32, f32, f32, u32)> {
-        run_on::<W, ANY, B>(&self.wide.nodes, &self.triangles, tester, ray)
+        run_on::<W, ANY, B>(
+            &self.wide.nodes,
+            &self.triangles,
+            tester,
+            ray,
+            0,
+            ray.t_max,
+            &mut TraversalCounters::default(),
+        )
     }
 }
 
@@ -563,25 +590,149 @@ fn run_on<const W: usize, const ANY: bool, B: BoxTester<W>>(
     triangles: &[[Vec3; 3]],
     tester: &B,
     ray: &Ray,
+    start: u32,
+    t_max: f32,
+    counters: &mut TraversalCounters,
 ) -> Option<(f32, f32, f32, u32)> {
     let wray = WatertightRay::new(ray.origin, ray.dir);
     let t_min = ray.t_min;
     let mut best: Option<(f32, f32, f32, u32)> = None;
-    traverse(nodes, tester, ray.t_max, |first, count, t_max| {
-        for k in first..first + count {
-            let [a, b, c] = triangles[k as usize];
-            if let Some((t, u, v)) = intersect_triangle(&wray, a, b, c, t_min, *t_max) {
-                if ANY {
-                    best = Some((t, u, v, k));
-                    return true;
-                }
-                if best.is_none_or(|h| t < h.0) {
-                    *t_max = t;
-                    best = Some((t, u, v, k));
-                }
+    traverse(
+        nodes,
+        tester,
+        start,
+        t_max,
+        counters,
+        |first, count, t_max| {
+            leaf_triangles::<ANY>(triangles, &wray, t_min, first, count, t_max, &mut best)
+        },
+    );
+    best
+}
+
+/// Traverse an 8-wide tree from node `start` (whose box the caller has
+/// tested) with `kernel`, near children first, calling `leaf(first, count,
+/// t_max)` for each leaf the ray segment `[ray.t_min, t_max]` enters; the
+/// callback may shrink `t_max` (closest hit) and returns `true` to stop.
+/// The top level (leaves are refs) and the object level (leaves are
+/// triangles) both run through this. An unavailable `kernel` falls back to
+/// the scalar one.
+#[inline]
+pub fn traverse_wide<L>(
+    nodes: &[WideNode<8>],
+    kernel: Kernel,
+    start: u32,
+    ray: &Ray,
+    t_max: f32,
+    counters: &mut TraversalCounters,
+    leaf: L,
+) where
+    L: FnMut(u32, u32, &mut f32) -> bool,
+{
+    match kernel {
+        #[cfg(target_arch = "x86_64")]
+        Kernel::Avx2 if kernel.is_available() => {
+            // SAFETY: the CPU has AVX2 and FMA (checked just above).
+            unsafe { traverse_avx2(nodes, start, ray, t_max, counters, leaf) }
+        }
+        #[cfg(target_arch = "x86_64")]
+        Kernel::Sse | Kernel::Avx2 if Kernel::Sse.is_available() => {
+            // SAFETY: the CPU has SSE4.1 (checked just above).
+            unsafe { traverse_sse(nodes, start, ray, t_max, counters, leaf) }
+        }
+        _ => {
+            let tester = ScalarTester {
+                ray: BoxRay::new(ray.origin, ray.dir),
+                t_min: ray.t_min,
+            };
+            traverse(nodes, &tester, start, t_max, counters, leaf)
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn traverse_avx2<L: FnMut(u32, u32, &mut f32) -> bool>(
+    nodes: &[WideNode<8>],
+    start: u32,
+    ray: &Ray,
+    t_max: f32,
+    counters: &mut TraversalCounters,
+    leaf: L,
+) {
+    let tester = x86::Avx2Tester::new(ray.origin, ray.dir, ray.t_min);
+    traverse(nodes, &tester, start, t_max, counters, leaf)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "sse4.1")]
+fn traverse_sse<L: FnMut(u32, u32, &mut f32) -> bool>(
+    nodes: &[WideNode<8>],
+    start: u32,
+    ray: &Ray,
+    t_max: f32,
+    counters: &mut TraversalCounters,
+    leaf: L,
+) {
+    let tester = x86::SseTester::new(ray.origin, ray.dir, ray.t_min);
+    traverse(nodes, &tester, start, t_max, counters, leaf)
+}
+
+/// Closest (or, with `ANY`, some) hit within `[ray.t_min, t_max]` in the
+/// subtree of node `start` of an 8-wide tree over `triangles` (leaf order),
+/// as (t, u, v, leaf-order slot), counting visited nodes. The caller has
+/// tested `start`'s box (a top-level leaf entering an object BVH).
+#[inline]
+pub fn query_subtree<const ANY: bool>(
+    nodes: &[WideNode<8>],
+    triangles: &[[Vec3; 3]],
+    kernel: Kernel,
+    start: u32,
+    ray: &Ray,
+    t_max: f32,
+    counters: &mut TraversalCounters,
+) -> Option<(f32, f32, f32, u32)> {
+    let wray = WatertightRay::new(ray.origin, ray.dir);
+    let t_min = ray.t_min;
+    let mut best: Option<(f32, f32, f32, u32)> = None;
+    traverse_wide(
+        nodes,
+        kernel,
+        start,
+        ray,
+        t_max,
+        counters,
+        |first, count, t_max| {
+            leaf_triangles::<ANY>(triangles, &wray, t_min, first, count, t_max, &mut best)
+        },
+    );
+    best
+}
+
+/// Intersect the triangles of one wide leaf (the loop and tie rule of
+/// [`MeshBvh::intersect_leaf`]); returns `true` to stop (`ANY` and a hit).
+#[inline(always)]
+fn leaf_triangles<const ANY: bool>(
+    triangles: &[[Vec3; 3]],
+    wray: &WatertightRay,
+    t_min: f32,
+    first: u32,
+    count: u32,
+    t_max: &mut f32,
+    best: &mut Option<(f32, f32, f32, u32)>,
+) -> bool {
+    for k in first..first + count {
+        let [a, b, c] = triangles[k as usize];
+        if let Some((t, u, v)) = intersect_triangle(wray, a, b, c, t_min, *t_max) {
+            if ANY {
+                *best = Some((t, u, v, k));
+                return true;
+            }
+            if best.is_none_or(|h| t < h.0) {
+                *t_max = t;
+                *best = Some((t, u, v, k));
             }
         }
-        false
-    });
-    best
+    }
+    false
 }

@@ -138,6 +138,11 @@ impl<const W: usize> WideNode<W> {
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct WideBvh<const W: usize> {
     pub nodes: Vec<WideNode<W>>,
+    /// The binary node each wide node was collapsed from, and the binary node
+    /// of each child slot (`WIDE_EMPTY` for empty slots): the re-braiding
+    /// top-level builder opens wide nodes and names them by binary node.
+    pub binary_of: Vec<u32>,
+    pub slot_binary: Vec<[u32; W]>,
     pub root_bounds: Aabb,
     /// Number of primitive slots the leaves cover (the binary tree's
     /// `prim_indices.len()`).
@@ -182,6 +187,8 @@ impl<const W: usize> WideBvh<W> {
         let bin = &bvh.nodes;
         let mut nodes = Vec::with_capacity(bin.len() / (W - 1) + 1);
         nodes.push(WideNode::EMPTY);
+        let mut binary_of = vec![0u32];
+        let mut slot_binary = vec![[WIDE_EMPTY; W]];
         // (binary node to collapse, wide node to fill)
         let mut work = vec![(0usize, 0usize)];
         let mut kids: Vec<usize> = Vec::with_capacity(W);
@@ -217,14 +224,19 @@ impl<const W: usize> WideBvh<W> {
                 } else {
                     let idx = nodes.len();
                     nodes.push(WideNode::EMPTY);
+                    binary_of.push(k as u32);
+                    slot_binary.push([WIDE_EMPTY; W]);
                     work.push((k, idx));
                     idx as u32
                 };
                 nodes[w].set_child(slot, &n.bounds(), r);
+                slot_binary[w][slot] = k as u32;
             }
         }
         Ok(Self {
             nodes,
+            binary_of,
+            slot_binary,
             root_bounds: root.bounds(),
             prim_count,
         })
@@ -235,9 +247,21 @@ impl<const W: usize> WideBvh<W> {
         self.nodes.is_empty()
     }
 
-    /// Bytes of the node array.
+    /// Bytes of the node array and the binary-node maps.
     pub fn bytes(&self) -> usize {
         std::mem::size_of_val(self.nodes.as_slice())
+            + std::mem::size_of_val(self.binary_of.as_slice())
+            + std::mem::size_of_val(self.slot_binary.as_slice())
+    }
+
+    /// For each of the `binary_nodes` nodes of the binary tree this was
+    /// collapsed from, the wide node collapsed from it, or `WIDE_EMPTY`.
+    pub fn wide_of_binary(&self, binary_nodes: usize) -> Vec<u32> {
+        let mut map = vec![WIDE_EMPTY; binary_nodes];
+        for (w, &b) in self.binary_of.iter().enumerate() {
+            map[b as usize] = w as u32;
+        }
+        map
     }
 
     /// Node, leaf and slot counts, depth and bytes.

@@ -6,7 +6,7 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::bvh::{BuildParams, TraversalCounters};
+use crate::bvh::{BoxRay, BuildParams, Kernel, TraversalCounters, WideBvh, query_subtree};
 use crate::{Error, Hit, MeshBvh, Ray, TriangleMesh};
 
 /// Where a triangle of the flat BVH came from.
@@ -21,6 +21,10 @@ pub struct PrimOrigin {
 #[derive(Clone, Debug, Default)]
 pub struct FlatAccel {
     pub bvh: MeshBvh,
+    /// The 8-wide traversal layout collapsed from `bvh` (`None` when a leaf
+    /// is too large for it: traversal stays binary then).
+    pub wide: Option<WideBvh<8>>,
+    pub kernel: Kernel,
     /// Origin of each world triangle, by flat primitive id.
     pub origins: Vec<PrimOrigin>,
 }
@@ -57,7 +61,13 @@ impl FlatAccel {
         }
         let mesh = TriangleMesh { positions, indices };
         let bvh = MeshBvh::build(&mesh, params)?;
-        Ok(Self { bvh, origins })
+        let wide = WideBvh::from_bvh(&bvh.bvh).ok();
+        Ok(Self {
+            bvh,
+            wide,
+            kernel: Kernel::best(),
+            origins,
+        })
     }
 
     fn map_hit(&self, mut h: Hit) -> Hit {
@@ -68,13 +78,53 @@ impl FlatAccel {
         h
     }
 
+    /// The wide tree when it exists and the ray enters the root box:
+    /// `None` = no wide layout, `Some(None)` = the ray misses everything.
+    fn wide_entry(&self, ray: &Ray) -> Option<Option<&WideBvh<8>>> {
+        let wide = self.wide.as_ref()?;
+        let root = self.bvh.bvh.nodes.first()?;
+        let enters = ray.is_valid()
+            && BoxRay::new(ray.origin, ray.dir).hit_node(root, ray.t_min, ray.t_max)
+                < f32::INFINITY;
+        Some(enters.then_some(wide))
+    }
+
     pub fn intersect_counted(&self, ray: &Ray, counters: &mut TraversalCounters) -> Option<Hit> {
-        self.bvh
-            .intersect_counted(ray, counters)
-            .map(|h| self.map_hit(h))
+        match self.wide_entry(ray) {
+            None => self
+                .bvh
+                .intersect_counted(ray, counters)
+                .map(|h| self.map_hit(h)),
+            Some(None) => None,
+            Some(Some(w)) => {
+                let h = query_subtree::<false>(
+                    &w.nodes,
+                    &self.bvh.triangles,
+                    self.kernel,
+                    0,
+                    ray,
+                    ray.t_max,
+                    counters,
+                )?;
+                Some(self.map_hit(self.bvh.make_hit(h)))
+            }
+        }
     }
 
     pub fn occluded(&self, ray: &Ray) -> bool {
-        self.bvh.occluded(ray)
+        match self.wide_entry(ray) {
+            None => self.bvh.occluded(ray),
+            Some(None) => false,
+            Some(Some(w)) => query_subtree::<true>(
+                &w.nodes,
+                &self.bvh.triangles,
+                self.kernel,
+                0,
+                ray,
+                ray.t_max,
+                &mut TraversalCounters::default(),
+            )
+            .is_some(),
+        }
     }
 }

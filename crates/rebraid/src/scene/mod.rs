@@ -668,13 +668,7 @@ impl Scene {
             self.top_initial = refs;
         }
         let (tree, top_refs, build_stats) = built?;
-        let accel = TopLevelAccel {
-            tree,
-            refs: top_refs,
-            objects,
-            instances,
-            build_stats,
-        };
+        let accel = TopLevelAccel::new(tree, top_refs, objects, instances, build_stats);
         #[cfg(debug_assertions)]
         if let Err(e) = accel.validate() {
             panic!("top-level builder produced an invalid tree: {e}");

@@ -48,6 +48,7 @@ use rayon::prelude::*;
 
 use super::{InstanceXf, ObjectBvh, TopRef};
 use crate::bvh::binning::{BinMapping, BinRange, Bins, MAX_BINS, SplitCandidate, with_bins};
+use crate::bvh::wide::WIDE_EMPTY;
 use crate::bvh::{Bvh, BvhNode, MEDIAN_FROM_DEPTH, compact_slots};
 use crate::{Aabb, Error, INVALID_ID};
 
@@ -221,6 +222,9 @@ pub struct TopLevelBuildStats {
     pub refs_final: usize,
     /// Object-BVH nodes replaced by their children.
     pub nodes_opened: usize,
+    /// Spare ref slots used: `refs_final - refs_initial` (an opened node
+    /// takes one slot per child but the first; up to 7 with wide nodes).
+    pub spare_used: usize,
     /// Size of the ref array (initial refs plus spare slots).
     pub capacity: usize,
     pub top_nodes: usize,
@@ -378,6 +382,7 @@ pub fn build_top_level_with(
     let stats = TopLevelBuildStats {
         refs_initial: n,
         refs_final: out_refs.len(),
+        spare_used: out_refs.len() - n,
         nodes_opened: ctx.opened.load(Ordering::Relaxed) as usize,
         capacity,
         top_nodes: nodes.len(),
@@ -445,44 +450,94 @@ fn is_object_leaf(ctx: &Ctx, r: &BuildRef) -> bool {
         .is_some_and(|o| o.nodes()[r.node as usize].is_leaf())
 }
 
-/// The two children of an opened ref.
+/// Child nodes (binary node ids) of an opened ref: the slots of the wide
+/// node collapsed from its node when the object has the wide layout (up to
+/// 8: the top level then reaches exactly the nodes traversal starts from),
+/// else the binary node's two children. Returns the ids and their count.
 #[inline]
-fn children(ctx: &Ctx, r: &BuildRef) -> [BuildRef; 2] {
+fn child_nodes(ctx: &Ctx, r: &BuildRef) -> ([u32; 8], usize) {
     let obj = ctx.src.objects[r.object as usize]
         .as_deref()
         .expect("validated");
-    let nodes = obj.nodes();
-    let c = nodes[r.node as usize].index;
-    let xf = (r.instance != INVALID_ID).then(|| &ctx.src.instances[r.instance as usize]);
-    let make = |i: u32| {
-        let node = &nodes[i as usize];
-        let local = node.bounds();
-        let bounds = match xf {
-            None => local,
-            // An instanced leaf's world box is that of its transformed
-            // vertices (a handful): much tighter than the transformed local
-            // box under rotation. Inner nodes get the transformed local box.
-            // Both are clipped to the parent's world box, which holds them
-            // up to rounding, so that the top-level nodes nest exactly.
-            Some(xf) if node.is_leaf() => obj.mesh.triangles[node.prim_range()]
-                .iter()
-                .flatten()
-                .fold(Aabb::EMPTY, |b, v| {
-                    b.grow(xf.object_to_world.transform_point3(*v))
-                })
-                .intersection(r.bounds),
-            Some(xf) => xf.world_box(&local).intersection(r.bounds),
-        };
-        BuildRef {
-            bounds,
-            object: r.object,
-            node: i,
-            instance: r.instance,
-            prims: obj.subtree_prims[i as usize],
-            cost: obj.subtree_cost[i as usize],
+    let mut ids = [0u32; 8];
+    if let (Some(wide), Some(w)) = (&obj.wide, obj.wide_node(r.node)) {
+        let slots = &wide.slot_binary[w as usize];
+        let mut k = 0;
+        for &b in slots.iter().take_while(|&&b| b != WIDE_EMPTY) {
+            ids[k] = b;
+            k += 1;
         }
+        return (ids, k);
+    }
+    let c = obj.nodes()[r.node as usize].index;
+    ids[0] = c;
+    ids[1] = c + 1;
+    (ids, 2)
+}
+
+/// The ref of child node `i` of an opened ref `r`.
+#[inline]
+fn child_ref(ctx: &Ctx, r: &BuildRef, i: u32) -> BuildRef {
+    let obj = ctx.src.objects[r.object as usize]
+        .as_deref()
+        .expect("validated");
+    let node = &obj.nodes()[i as usize];
+    let local = node.bounds();
+    let xf = (r.instance != INVALID_ID).then(|| &ctx.src.instances[r.instance as usize]);
+    let bounds = match xf {
+        None => local,
+        // An instanced leaf's world box is that of its transformed vertices
+        // (a handful): much tighter than the transformed local box under
+        // rotation. Inner nodes get the transformed local box. Both are
+        // clipped to the parent's world box, which holds them up to
+        // rounding, so that the top-level nodes nest exactly.
+        Some(xf) if node.is_leaf() => obj.mesh.triangles[node.prim_range()]
+            .iter()
+            .flatten()
+            .fold(Aabb::EMPTY, |b, v| {
+                b.grow(xf.object_to_world.transform_point3(*v))
+            })
+            .intersection(r.bounds),
+        Some(xf) => xf.world_box(&local).intersection(r.bounds),
     };
-    [make(c), make(c + 1)]
+    BuildRef {
+        bounds,
+        object: r.object,
+        node: i,
+        instance: r.instance,
+        prims: obj.subtree_prims[i as usize],
+        cost: obj.subtree_cost[i as usize],
+    }
+}
+
+/// Spare slots opening `r` takes: its children but one (which takes its place).
+#[inline]
+fn extra_refs(ctx: &Ctx, r: &BuildRef) -> usize {
+    child_nodes(ctx, r).1 - 1
+}
+
+/// Replace every ref of `head` by its first child and write the other
+/// children, in order, to `tail` (exactly as long as they need). Halves
+/// `head` recursively in parallel when it is long; allocation-free.
+fn open_all(ctx: &Ctx, head: &mut [BuildRef], tail: &mut [BuildRef]) {
+    if head.len() <= ctx.params.parallel_threshold.max(64) {
+        let mut cursor = 0;
+        for r in head.iter_mut() {
+            let (ids, k) = child_nodes(ctx, r);
+            let parent = *r;
+            *r = child_ref(ctx, &parent, ids[0]);
+            for &i in &ids[1..k] {
+                tail[cursor] = child_ref(ctx, &parent, i);
+                cursor += 1;
+            }
+        }
+        return;
+    }
+    let mid = head.len() / 2;
+    let extra: usize = head[..mid].iter().map(|r| extra_refs(ctx, r)).sum();
+    let (h1, h2) = head.split_at_mut(mid);
+    let (t1, t2) = tail.split_at_mut(extra);
+    rayon::join(|| open_all(ctx, h1, t1), || open_all(ctx, h2, t2));
 }
 
 /// True when two boxes share an area or volume (touching at an edge or a
@@ -539,38 +594,29 @@ fn open_refs(ctx: &Ctx, list: &mut [BuildRef], n: usize, bounds: &Aabb) -> usize
         m
     };
     let spare = list.len() - n;
-    let k = if m > spare {
-        // Not all fit: open the largest.
-        list[..m].select_nth_unstable_by(spare, |a, b| {
-            b.bounds.extent()[axis].total_cmp(&a.bounds.extent()[axis])
-        });
-        spare
-    } else {
-        m
-    };
+    let mut extra: usize = list[..m].iter().map(|r| extra_refs(ctx, r)).sum();
+    let mut k = m;
+    if extra > spare {
+        // Not all fit: open the largest that do, in order of size.
+        list[..m]
+            .sort_unstable_by(|a, b| b.bounds.extent()[axis].total_cmp(&a.bounds.extent()[axis]));
+        (k, extra) = (0, 0);
+        while k < m {
+            let e = extra_refs(ctx, &list[k]);
+            if extra + e > spare {
+                break;
+            }
+            extra += e;
+            k += 1;
+        }
+    }
     if k == 0 {
         return n;
     }
     let (head, tail) = list.split_at_mut(n);
-    let open_one = |(r, extra): (&mut BuildRef, &mut BuildRef)| {
-        let [a, b] = children(ctx, r);
-        *r = a;
-        *extra = b;
-    };
-    if k > ctx.params.parallel_threshold {
-        head[..k]
-            .par_iter_mut()
-            .zip(tail[..k].par_iter_mut())
-            .with_min_len(CHUNK)
-            .for_each(open_one);
-    } else {
-        head[..k]
-            .iter_mut()
-            .zip(tail[..k].iter_mut())
-            .for_each(open_one);
-    }
+    open_all(ctx, &mut head[..k], &mut tail[..extra]);
     ctx.opened.fetch_add(k as u64, Ordering::Relaxed);
-    n + k
+    n + extra
 }
 
 /// Bins a list of refs by their SAH weights (in parallel chunks when long).

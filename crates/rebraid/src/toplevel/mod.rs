@@ -15,7 +15,11 @@ use std::sync::Arc;
 use glam::Affine3A;
 use rayon::prelude::*;
 
-use crate::bvh::{BoxRay, Bvh, BvhNode, SahCosts, TRAVERSAL_STACK, TraversalCounters};
+use crate::bvh::wide::WIDE_EMPTY;
+use crate::bvh::{
+    BoxRay, Bvh, BvhNode, Kernel, SahCosts, TRAVERSAL_STACK, TraversalCounters, TraversalStack,
+    WideBvh, query_subtree, traverse_wide,
+};
 use crate::transform::{transform_box, transform_normal};
 use crate::triangle::WatertightRay;
 use crate::{Aabb, Hit, INVALID_ID, MeshBvh, Ray};
@@ -32,6 +36,14 @@ pub struct ObjectBvh {
     /// Expected SAH cost of each node's subtree for a ray that enters the
     /// node's box (traversal and intersection cost 1).
     pub subtree_cost: Vec<f32>,
+    /// The 8-wide layout traversal uses, collapsed from `mesh.bvh` (which
+    /// stays the build, re-braiding and statistics structure); `None` when a
+    /// binary leaf is too large for it.
+    pub wide: Option<WideBvh<8>>,
+    /// For each binary node, the wide node collapsed from it, or `WIDE_EMPTY`.
+    pub wide_of: Vec<u32>,
+    /// The SIMD kernel of this CPU ([`Kernel::best`]).
+    pub kernel: Kernel,
 }
 
 impl ObjectBvh {
@@ -41,9 +53,32 @@ impl ObjectBvh {
             mesh,
             subtree_prims: vec![0; n],
             subtree_cost: vec![0.0; n],
+            wide: None,
+            wide_of: Vec::new(),
+            kernel: Kernel::best(),
         };
         o.update_counts_and_costs();
+        o.collapse_wide();
         o
+    }
+
+    /// (Re)collapse the 8-wide traversal layout from the binary tree; none
+    /// when a binary leaf is too large for it (traversal stays binary then).
+    fn collapse_wide(&mut self) {
+        self.wide = WideBvh::<8>::from_bvh(&self.mesh.bvh).ok();
+        self.wide_of = match &self.wide {
+            Some(w) => w.wide_of_binary(self.mesh.bvh.nodes.len()),
+            None => Vec::new(),
+        };
+    }
+
+    /// The wide node collapsed from binary node `node`, if any.
+    #[inline(always)]
+    pub fn wide_node(&self, node: u32) -> Option<u32> {
+        self.wide_of
+            .get(node as usize)
+            .copied()
+            .filter(|&w| w != WIDE_EMPTY)
     }
 
     /// Refit the object BVH to moved vertices (same triangles, see
@@ -52,6 +87,7 @@ impl ObjectBvh {
     pub fn refit(&mut self, mesh: &crate::TriangleMesh) -> Result<(), crate::Error> {
         self.mesh.refit(mesh)?;
         self.update_counts_and_costs();
+        self.collapse_wide();
         Ok(())
     }
 
@@ -88,6 +124,56 @@ impl ObjectBvh {
     pub fn nodes(&self) -> &[BvhNode] {
         &self.mesh.bvh.nodes
     }
+
+    /// The closest hit (or, with `ANY`, some hit) within `[ray.t_min, t_max]`
+    /// in the subtree of binary node `node`, whose box the caller has tested
+    /// (a top-level leaf), as (t, u, v, leaf-order slot). `ray` is in object
+    /// space, `bray` and `wray` its prepared forms. A leaf is intersected
+    /// directly; an inner node collapsed into the wide layout is traversed
+    /// with the SIMD kernel; anything else with the binary scalar kernel.
+    #[allow(clippy::too_many_arguments)] // the hot path: plain values
+    #[inline(always)]
+    pub fn query_node<const ANY: bool>(
+        &self,
+        node: u32,
+        ray: &Ray,
+        bray: &BoxRay,
+        wray: &WatertightRay,
+        t_max: f32,
+        stack: &mut TraversalStack,
+        counters: &mut TraversalCounters,
+    ) -> Option<(f32, f32, f32, u32)> {
+        let n = &self.mesh.bvh.nodes[node as usize];
+        let t_min = ray.t_min;
+        if !n.is_leaf()
+            && let (Some(wide), Some(w)) = (&self.wide, self.wide_node(node))
+        {
+            return query_subtree::<ANY>(
+                &wide.nodes,
+                &self.mesh.triangles,
+                self.kernel,
+                w,
+                ray,
+                t_max,
+                counters,
+            );
+        }
+        let mut best = None;
+        self.mesh
+            .bvh
+            .traverse_from(node, bray, t_min, t_max, stack, counters, |leaf, tm| {
+                if ANY {
+                    if self.mesh.occluded_leaf(wray, leaf, t_min, *tm) {
+                        best = Some((0.0, 0.0, 0.0, 0));
+                        return true;
+                    }
+                    return false;
+                }
+                self.mesh.intersect_leaf(wray, leaf, t_min, tm, &mut best);
+                false
+            });
+        best
+    }
 }
 
 /// A top-level leaf entry: object-BVH node `node` of object `object`, placed
@@ -122,6 +208,24 @@ impl InstanceXf {
         }
     }
 
+    /// The ray in the instance's object space, with its prepared forms (the
+    /// direction is transformed unnormalised, so `t` means the same).
+    #[inline]
+    pub fn local_ray(&self, ray: &Ray) -> (Ray, BoxRay, WatertightRay) {
+        let o = self.world_to_object.transform_point3(ray.origin);
+        let d = self.world_to_object.transform_vector3(ray.dir);
+        (
+            Ray {
+                origin: o,
+                dir: d,
+                t_min: ray.t_min,
+                t_max: ray.t_max,
+            },
+            BoxRay::new(o, d),
+            WatertightRay::new(o, d),
+        )
+    }
+
     /// World box of an object-space box.
     #[inline]
     pub fn world_box(&self, local: &Aabb) -> Aabb {
@@ -140,6 +244,21 @@ pub struct TopLevelAccel {
     /// Instance transforms by instance id.
     pub instances: Vec<InstanceXf>,
     pub build_stats: TopLevelBuildStats,
+    /// The 8-wide layout of `tree` that traversal uses (leaves are single
+    /// refs); `None` only for an empty tree.
+    pub wide: Option<WideBvh<8>>,
+    /// The SIMD kernel of this CPU ([`Kernel::best`]).
+    pub kernel: Kernel,
+}
+
+/// Per-ray state of a closest-hit traversal through refs: the best hit, the
+/// ray in the last instance's space (reused while consecutive refs share
+/// the instance), and the object-level stack and counters.
+struct RefWalk {
+    best: Option<RefHit>,
+    cached: Option<(u32, Ray, BoxRay, WatertightRay)>,
+    stack: TraversalStack,
+    inner: TraversalCounters,
 }
 
 /// The best hit so far inside a top-level traversal: (t, u, v, leaf-order
@@ -147,6 +266,133 @@ pub struct TopLevelAccel {
 type RefHit = (f32, f32, f32, u32, u32);
 
 impl TopLevelAccel {
+    /// Assemble a committed top level and collapse its tree to 8 wide.
+    pub fn new(
+        tree: Bvh,
+        refs: Vec<TopRef>,
+        objects: Vec<Option<Arc<ObjectBvh>>>,
+        instances: Vec<InstanceXf>,
+        build_stats: TopLevelBuildStats,
+    ) -> Self {
+        let wide = WideBvh::<8>::from_bvh(&tree).ok().filter(|w| !w.is_empty());
+        Self {
+            tree,
+            refs,
+            objects,
+            instances,
+            build_stats,
+            wide,
+            kernel: Kernel::best(),
+        }
+    }
+
+    /// Closest hits among the refs `range` of a top-level leaf.
+    #[inline(always)]
+    fn refs_closest(
+        &self,
+        range: std::ops::Range<usize>,
+        ray: &Ray,
+        bray: &BoxRay,
+        wray: &WatertightRay,
+        t_max: &mut f32,
+        walk: &mut RefWalk,
+    ) {
+        for ri in range {
+            let r = &self.refs[ri];
+            let Some(obj) = self.object(r) else { continue };
+            let (lr, lb, lw) = if r.instance == INVALID_ID {
+                (*ray, *bray, *wray)
+            } else {
+                match walk.cached {
+                    Some((id, lr, b, w)) if id == r.instance => (lr, b, w),
+                    _ => {
+                        let v = self.instances[r.instance as usize].local_ray(ray);
+                        walk.cached = Some((r.instance, v.0, v.1, v.2));
+                        v
+                    }
+                }
+            };
+            let hit = obj.query_node::<false>(
+                r.node,
+                &lr,
+                &lb,
+                &lw,
+                *t_max,
+                &mut walk.stack,
+                &mut walk.inner,
+            );
+            if let Some((t, u, v, k)) = hit
+                && walk.best.is_none_or(|b| t < b.0)
+            {
+                *t_max = t;
+                walk.best = Some((t, u, v, k, ri as u32));
+            }
+        }
+    }
+
+    /// True when some ref of `range` is hit within `[ray.t_min, t_max]`.
+    #[inline(always)]
+    fn refs_occluded(
+        &self,
+        range: std::ops::Range<usize>,
+        ray: &Ray,
+        bray: &BoxRay,
+        wray: &WatertightRay,
+        t_max: f32,
+        walk: &mut RefWalk,
+    ) -> bool {
+        range.into_iter().any(|ri| {
+            let r = &self.refs[ri];
+            let Some(obj) = self.object(r) else {
+                return false;
+            };
+            let (lr, lb, lw) = if r.instance == INVALID_ID {
+                (*ray, *bray, *wray)
+            } else {
+                self.instances[r.instance as usize].local_ray(ray)
+            };
+            obj.query_node::<true>(
+                r.node,
+                &lr,
+                &lb,
+                &lw,
+                t_max,
+                &mut walk.stack,
+                &mut walk.inner,
+            )
+            .is_some()
+        })
+    }
+
+    /// Visit the top-level leaves the ray enters (wide SIMD traversal, or
+    /// the binary one), calling `leaf(refs, t_max) -> stop`.
+    #[inline(always)]
+    fn walk_top<L>(&self, ray: &Ray, bray: &BoxRay, counters: &mut TraversalCounters, mut leaf: L)
+    where
+        L: FnMut(std::ops::Range<usize>, &mut f32) -> bool,
+    {
+        match (&self.wide, self.tree.nodes.first()) {
+            (Some(wide), Some(root)) => {
+                if bray.hit_node(root, ray.t_min, ray.t_max) < f32::INFINITY {
+                    traverse_wide(
+                        &wide.nodes,
+                        self.kernel,
+                        0,
+                        ray,
+                        ray.t_max,
+                        counters,
+                        |first, count, t_max| leaf(first as usize..(first + count) as usize, t_max),
+                    );
+                }
+            }
+            _ => self
+                .tree
+                .traverse(bray, ray.t_min, ray.t_max, counters, |node, t_max| {
+                    leaf(node.prim_range(), t_max)
+                }),
+        }
+    }
+
     #[inline(always)]
     fn object(&self, r: &TopRef) -> Option<&ObjectBvh> {
         self.objects
@@ -166,60 +412,19 @@ impl TopLevelAccel {
         }
         let bray = BoxRay::new(ray.origin, ray.dir);
         let wray = WatertightRay::new(ray.origin, ray.dir);
-        let t_min = ray.t_min;
-        let mut best: Option<RefHit> = None;
-        // Leaf-level hits of the object being traversed: (t, u, v, k).
-        let mut obj_best: Option<(f32, f32, f32, u32)> = None;
-        // Ray transformed into the last instance's space, reused while
-        // consecutive refs share the instance.
-        let mut cached: Option<(u32, BoxRay, WatertightRay)> = None;
-        let tree = &self.tree;
-        let mut inner_counters = TraversalCounters::default();
-        let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
-        tree.traverse(&bray, t_min, ray.t_max, counters, |leaf, t_max| {
-            for ri in leaf.prim_range() {
-                let r = &self.refs[ri];
-                let Some(obj) = self.object(r) else { continue };
-                let (lb, lw) = if r.instance == INVALID_ID {
-                    (bray, wray)
-                } else {
-                    match cached {
-                        Some((id, b, w)) if id == r.instance => (b, w),
-                        _ => {
-                            let xf = &self.instances[r.instance as usize];
-                            let o = xf.world_to_object.transform_point3(ray.origin);
-                            let d = xf.world_to_object.transform_vector3(ray.dir);
-                            let v = (BoxRay::new(o, d), WatertightRay::new(o, d));
-                            cached = Some((r.instance, v.0, v.1));
-                            v
-                        }
-                    }
-                };
-                obj_best = None;
-                obj.mesh.bvh.traverse_from(
-                    r.node,
-                    &lb,
-                    t_min,
-                    *t_max,
-                    &mut stack,
-                    &mut inner_counters,
-                    |node, tm| {
-                        obj.mesh.intersect_leaf(&lw, node, t_min, tm, &mut obj_best);
-                        false
-                    },
-                );
-                if let Some((t, u, v, k)) = obj_best
-                    && best.is_none_or(|b| t < b.0)
-                {
-                    *t_max = t;
-                    best = Some((t, u, v, k, ri as u32));
-                }
-            }
+        let mut walk = RefWalk {
+            best: None,
+            cached: None,
+            stack: [(0u32, 0.0f32); TRAVERSAL_STACK],
+            inner: TraversalCounters::default(),
+        };
+        self.walk_top(ray, &bray, counters, |refs, t_max| {
+            self.refs_closest(refs, ray, &bray, &wray, t_max, &mut walk);
             false
         });
-        counters.inner_visited += inner_counters.inner_visited;
-        counters.leaves_visited += inner_counters.leaves_visited;
-        best.map(|h| self.make_hit(h))
+        counters.inner_visited += walk.inner.inner_visited;
+        counters.leaves_visited += walk.inner.leaves_visited;
+        walk.best.map(|h| self.make_hit(h))
     }
 
     fn make_hit(&self, (t, u, v, k, ri): RefHit) -> Hit {
@@ -243,42 +448,22 @@ impl TopLevelAccel {
         }
         let bray = BoxRay::new(ray.origin, ray.dir);
         let wray = WatertightRay::new(ray.origin, ray.dir);
-        let t_min = ray.t_min;
+        let mut walk = RefWalk {
+            best: None,
+            cached: None,
+            stack: [(0u32, 0.0f32); TRAVERSAL_STACK],
+            inner: TraversalCounters::default(),
+        };
         let mut hit = false;
-        let mut counters = TraversalCounters::default();
-        let mut inner = TraversalCounters::default();
-        let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
-        self.tree
-            .traverse(&bray, t_min, ray.t_max, &mut counters, |leaf, t_max| {
-                for ri in leaf.prim_range() {
-                    let r = &self.refs[ri];
-                    let Some(obj) = self.object(r) else { continue };
-                    let (lb, lw) = if r.instance == INVALID_ID {
-                        (bray, wray)
-                    } else {
-                        let xf = &self.instances[r.instance as usize];
-                        let o = xf.world_to_object.transform_point3(ray.origin);
-                        let d = xf.world_to_object.transform_vector3(ray.dir);
-                        (BoxRay::new(o, d), WatertightRay::new(o, d))
-                    };
-                    obj.mesh.bvh.traverse_from(
-                        r.node,
-                        &lb,
-                        t_min,
-                        *t_max,
-                        &mut stack,
-                        &mut inner,
-                        |node, tm| {
-                            hit = obj.mesh.occluded_leaf(&lw, node, t_min, *tm);
-                            hit
-                        },
-                    );
-                    if hit {
-                        return true;
-                    }
-                }
-                false
-            });
+        self.walk_top(
+            ray,
+            &bray,
+            &mut TraversalCounters::default(),
+            |refs, t_max| {
+                hit = self.refs_occluded(refs, ray, &bray, &wray, *t_max, &mut walk);
+                hit
+            },
+        );
         hit
     }
 
