@@ -13,7 +13,10 @@ pub mod wide;
 pub(crate) use build::compact_slots;
 pub use build::{BuildParams, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh};
 pub use node::BvhNode;
-pub use simd::{Kernel, WIDE_STACK, WideMeshBvh, query_subtree, traverse_wide};
+pub use simd::{
+    BoxTester, Kernel, TesterFactory, WIDE_STACK, WideMeshBvh, WideQuery, query_subtree,
+    subtree_with, traverse_wide, traverse_with, with_kernel,
+};
 pub use stats::{BvhStats, SahCosts};
 pub use traverse::{BoxRay, TRAVERSAL_STACK, TraversalCounters, TraversalStack};
 pub use wide::{WideBvh, WideNode, WideStats};

@@ -92,11 +92,12 @@ impl Kernel {
 /// Tests a ray against the `W` child boxes of a node: returns the mask of
 /// hit children and writes their entry distances to `dist`. A lane is hit
 /// exactly when [`BoxRay::hit_node`] would return a finite distance for it.
-trait BoxTester<const W: usize> {
+pub trait BoxTester<const W: usize> {
     fn test(&self, node: &WideNode<W>, t_max: f32, dist: &mut [f32; W]) -> u32;
 }
 
 /// The reference: the binary traversal's test, lane by lane.
+#[derive(Clone, Copy)]
 struct ScalarTester {
     ray: BoxRay,
     t_min: f32,
@@ -145,6 +146,7 @@ mod x86 {
     use glam::Vec3;
 
     /// Four lanes per step; any `W` that is a multiple of 4.
+    #[derive(Clone, Copy)]
     pub(super) struct SseTester {
         origin: [__m128; 3],
         inv_dir: [__m128; 3],
@@ -217,6 +219,7 @@ mod x86 {
     }
 
     /// Eight lanes in one step, `W = 8`.
+    #[derive(Clone, Copy)]
     pub(super) struct Avx2Tester {
         origin: [__m256; 3],
         inv_dir: [__m256; 3],
@@ -676,6 +679,135 @@ fn traverse_sse<L: FnMut(u32, u32, &mut f32) -> bool>(
 ) {
     let tester = x86::SseTester::new(ray.origin, ray.dir, ray.t_min);
     traverse(nodes, &tester, start, t_max, counters, leaf)
+}
+
+/// Makes one kernel's box tester for a ray. A two-level traversal gets a
+/// factory through [`with_kernel`] and runs entirely inside that kernel's
+/// target-feature context, making testers for the world ray and for each
+/// instance's object-space ray only (not one per top-level leaf).
+pub trait TesterFactory {
+    type Tester: BoxTester<8> + Copy;
+    fn make(&self, ray: &Ray) -> Self::Tester;
+}
+
+/// A query run by [`with_kernel`] with the factory of the chosen kernel.
+pub trait WideQuery {
+    fn run<F: TesterFactory>(&mut self, factory: &F);
+}
+
+struct ScalarFactory;
+
+impl TesterFactory for ScalarFactory {
+    type Tester = ScalarTester;
+    #[inline(always)]
+    fn make(&self, ray: &Ray) -> ScalarTester {
+        ScalarTester {
+            ray: BoxRay::new(ray.origin, ray.dir),
+            t_min: ray.t_min,
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+struct SseFactory;
+
+#[cfg(target_arch = "x86_64")]
+impl TesterFactory for SseFactory {
+    type Tester = x86::SseTester;
+    #[inline(always)]
+    fn make(&self, ray: &Ray) -> x86::SseTester {
+        // SAFETY: an `SseFactory` exists only inside `run_sse`, which runs
+        // only on CPUs with SSE4.1 (checked by `with_kernel`).
+        unsafe { x86::SseTester::new(ray.origin, ray.dir, ray.t_min) }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+struct Avx2Factory;
+
+#[cfg(target_arch = "x86_64")]
+impl TesterFactory for Avx2Factory {
+    type Tester = x86::Avx2Tester;
+    #[inline(always)]
+    fn make(&self, ray: &Ray) -> x86::Avx2Tester {
+        // SAFETY: an `Avx2Factory` exists only inside `run_avx2`, which runs
+        // only on CPUs with AVX2 and FMA (checked by `with_kernel`).
+        unsafe { x86::Avx2Tester::new(ray.origin, ray.dir, ray.t_min) }
+    }
+}
+
+/// Run `query` with `kernel`'s tester factory, inside that kernel's
+/// target-feature context (an unavailable kernel falls back to scalar).
+#[inline]
+pub fn with_kernel<Q: WideQuery>(kernel: Kernel, query: &mut Q) {
+    match kernel {
+        #[cfg(target_arch = "x86_64")]
+        Kernel::Avx2 if kernel.is_available() => {
+            // SAFETY: the CPU has AVX2 and FMA (checked just above).
+            unsafe { run_avx2(query) }
+        }
+        #[cfg(target_arch = "x86_64")]
+        Kernel::Sse | Kernel::Avx2 if Kernel::Sse.is_available() => {
+            // SAFETY: the CPU has SSE4.1 (checked just above).
+            unsafe { run_sse(query) }
+        }
+        _ => query.run(&ScalarFactory),
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn run_avx2<Q: WideQuery>(query: &mut Q) {
+    query.run(&Avx2Factory)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "sse4.1")]
+fn run_sse<Q: WideQuery>(query: &mut Q) {
+    query.run(&SseFactory)
+}
+
+/// [`traverse_wide`] with a caller's tester (inside [`WideQuery::run`]).
+#[inline(always)]
+pub fn traverse_with<B, L>(
+    nodes: &[WideNode<8>],
+    tester: &B,
+    start: u32,
+    t_max: f32,
+    counters: &mut TraversalCounters,
+    leaf: L,
+) where
+    B: BoxTester<8>,
+    L: FnMut(u32, u32, &mut f32) -> bool,
+{
+    traverse(nodes, tester, start, t_max, counters, leaf)
+}
+
+/// [`query_subtree`] with a caller's tester and prepared watertight ray.
+#[allow(clippy::too_many_arguments)] // the hot path: plain values
+#[inline(always)]
+pub fn subtree_with<const ANY: bool, B: BoxTester<8>>(
+    nodes: &[WideNode<8>],
+    triangles: &[[Vec3; 3]],
+    tester: &B,
+    wray: &WatertightRay,
+    t_min: f32,
+    start: u32,
+    t_max: f32,
+    counters: &mut TraversalCounters,
+) -> Option<(f32, f32, f32, u32)> {
+    let mut best: Option<(f32, f32, f32, u32)> = None;
+    traverse(
+        nodes,
+        tester,
+        start,
+        t_max,
+        counters,
+        |first, count, t_max| {
+            leaf_triangles::<ANY>(triangles, wray, t_min, first, count, t_max, &mut best)
+        },
+    );
+    best
 }
 
 /// Closest (or, with `ANY`, some) hit within `[ray.t_min, t_max]` in the

@@ -17,8 +17,9 @@ use rayon::prelude::*;
 
 use crate::bvh::wide::WIDE_EMPTY;
 use crate::bvh::{
-    BoxRay, Bvh, BvhNode, Kernel, SahCosts, TRAVERSAL_STACK, TraversalCounters, TraversalStack,
-    WideBvh, query_subtree, traverse_wide,
+    BoxRay, BoxTester, Bvh, BvhNode, Kernel, SahCosts, TRAVERSAL_STACK, TesterFactory,
+    TraversalCounters, TraversalStack, WideBvh, WideQuery, subtree_with, traverse_with,
+    with_kernel,
 };
 use crate::transform::{transform_box, transform_normal};
 use crate::triangle::WatertightRay;
@@ -128,32 +129,32 @@ impl ObjectBvh {
     /// The closest hit (or, with `ANY`, some hit) within `[ray.t_min, t_max]`
     /// in the subtree of binary node `node`, whose box the caller has tested
     /// (a top-level leaf), as (t, u, v, leaf-order slot). `ray` is in object
-    /// space, `bray` and `wray` its prepared forms. A leaf is intersected
-    /// directly; an inner node collapsed into the wide layout is traversed
-    /// with the SIMD kernel; anything else with the binary scalar kernel.
+    /// space, `bray`, `wray` and `tester` its prepared forms. An inner node
+    /// collapsed into the wide layout is traversed with the caller's SIMD
+    /// tester; anything else (a leaf, or an object without the wide layout)
+    /// with the binary scalar kernel.
     #[allow(clippy::too_many_arguments)] // the hot path: plain values
     #[inline(always)]
-    pub fn query_node<const ANY: bool>(
+    pub fn query_node<const ANY: bool, B: BoxTester<8>>(
         &self,
         node: u32,
         ray: &Ray,
         bray: &BoxRay,
         wray: &WatertightRay,
+        tester: &B,
         t_max: f32,
         stack: &mut TraversalStack,
         counters: &mut TraversalCounters,
     ) -> Option<(f32, f32, f32, u32)> {
-        let n = &self.mesh.bvh.nodes[node as usize];
         let t_min = ray.t_min;
-        if !n.is_leaf()
-            && let (Some(wide), Some(w)) = (&self.wide, self.wide_node(node))
-        {
-            return query_subtree::<ANY>(
+        if let (Some(wide), Some(w)) = (&self.wide, self.wide_node(node)) {
+            return subtree_with::<ANY, B>(
                 &wide.nodes,
                 &self.mesh.triangles,
-                self.kernel,
+                tester,
+                wray,
+                t_min,
                 w,
-                ray,
                 t_max,
                 counters,
             );
@@ -251,19 +252,86 @@ pub struct TopLevelAccel {
     pub kernel: Kernel,
 }
 
-/// Per-ray state of a closest-hit traversal through refs: the best hit, the
-/// ray in the last instance's space (reused while consecutive refs share
-/// the instance), and the object-level stack and counters.
-struct RefWalk {
-    best: Option<RefHit>,
-    cached: Option<(u32, Ray, BoxRay, WatertightRay)>,
-    stack: TraversalStack,
-    inner: TraversalCounters,
-}
-
 /// The best hit so far inside a top-level traversal: (t, u, v, leaf-order
 /// triangle index within its object, ref index).
 type RefHit = (f32, f32, f32, u32, u32);
+
+/// One ray through the top level and into the object BVHs, run inside a
+/// SIMD kernel's context by [`with_kernel`]: testers are made for the world
+/// ray once and for each instance's object-space ray once per run of refs
+/// sharing the instance, not per top-level leaf. `ANY`: stop at the first
+/// hit (occlusion).
+struct RayWalk<'a, const ANY: bool> {
+    accel: &'a TopLevelAccel,
+    ray: &'a Ray,
+    counters: &'a mut TraversalCounters,
+    best: Option<RefHit>,
+}
+
+impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
+    #[inline(always)]
+    fn run<F: TesterFactory>(&mut self, factory: &F) {
+        let (a, ray) = (self.accel, self.ray);
+        let (Some(wide), Some(root)) = (&a.wide, a.tree.nodes.first()) else {
+            return;
+        };
+        let bray = BoxRay::new(ray.origin, ray.dir);
+        if bray.hit_node(root, ray.t_min, ray.t_max) == f32::INFINITY {
+            return;
+        }
+        let world = factory.make(ray);
+        let wray = WatertightRay::new(ray.origin, ray.dir);
+        let mut cached: Option<(u32, Ray, BoxRay, WatertightRay, F::Tester)> = None;
+        let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
+        let mut inner = TraversalCounters::default();
+        let mut best = None;
+        traverse_with(
+            &wide.nodes,
+            &world,
+            0,
+            ray.t_max,
+            self.counters,
+            |first, count, t_max| {
+                for ri in first..first + count {
+                    let r = &a.refs[ri as usize];
+                    let Some(obj) = a.object(r) else { continue };
+                    let hit = if r.instance == INVALID_ID {
+                        obj.query_node::<ANY, _>(
+                            r.node, ray, &bray, &wray, &world, *t_max, &mut stack, &mut inner,
+                        )
+                    } else {
+                        let (lr, lb, lw, lt) = match cached {
+                            Some((id, lr, lb, lw, lt)) if id == r.instance => (lr, lb, lw, lt),
+                            _ => {
+                                let (lr, lb, lw) = a.instances[r.instance as usize].local_ray(ray);
+                                let lt = factory.make(&lr);
+                                cached = Some((r.instance, lr, lb, lw, lt));
+                                (lr, lb, lw, lt)
+                            }
+                        };
+                        obj.query_node::<ANY, _>(
+                            r.node, &lr, &lb, &lw, &lt, *t_max, &mut stack, &mut inner,
+                        )
+                    };
+                    if let Some((t, u, v, k)) = hit {
+                        if ANY {
+                            best = Some((t, u, v, k, ri));
+                            return true;
+                        }
+                        if best.is_none_or(|b: RefHit| t < b.0) {
+                            *t_max = t;
+                            best = Some((t, u, v, k, ri));
+                        }
+                    }
+                }
+                false
+            },
+        );
+        self.counters.inner_visited += inner.inner_visited;
+        self.counters.leaves_visited += inner.leaves_visited;
+        self.best = best;
+    }
+}
 
 impl TopLevelAccel {
     /// Assemble a committed top level and collapse its tree to 8 wide.
@@ -286,113 +354,6 @@ impl TopLevelAccel {
         }
     }
 
-    /// Closest hits among the refs `range` of a top-level leaf.
-    #[inline(always)]
-    fn refs_closest(
-        &self,
-        range: std::ops::Range<usize>,
-        ray: &Ray,
-        bray: &BoxRay,
-        wray: &WatertightRay,
-        t_max: &mut f32,
-        walk: &mut RefWalk,
-    ) {
-        for ri in range {
-            let r = &self.refs[ri];
-            let Some(obj) = self.object(r) else { continue };
-            let (lr, lb, lw) = if r.instance == INVALID_ID {
-                (*ray, *bray, *wray)
-            } else {
-                match walk.cached {
-                    Some((id, lr, b, w)) if id == r.instance => (lr, b, w),
-                    _ => {
-                        let v = self.instances[r.instance as usize].local_ray(ray);
-                        walk.cached = Some((r.instance, v.0, v.1, v.2));
-                        v
-                    }
-                }
-            };
-            let hit = obj.query_node::<false>(
-                r.node,
-                &lr,
-                &lb,
-                &lw,
-                *t_max,
-                &mut walk.stack,
-                &mut walk.inner,
-            );
-            if let Some((t, u, v, k)) = hit
-                && walk.best.is_none_or(|b| t < b.0)
-            {
-                *t_max = t;
-                walk.best = Some((t, u, v, k, ri as u32));
-            }
-        }
-    }
-
-    /// True when some ref of `range` is hit within `[ray.t_min, t_max]`.
-    #[inline(always)]
-    fn refs_occluded(
-        &self,
-        range: std::ops::Range<usize>,
-        ray: &Ray,
-        bray: &BoxRay,
-        wray: &WatertightRay,
-        t_max: f32,
-        walk: &mut RefWalk,
-    ) -> bool {
-        range.into_iter().any(|ri| {
-            let r = &self.refs[ri];
-            let Some(obj) = self.object(r) else {
-                return false;
-            };
-            let (lr, lb, lw) = if r.instance == INVALID_ID {
-                (*ray, *bray, *wray)
-            } else {
-                self.instances[r.instance as usize].local_ray(ray)
-            };
-            obj.query_node::<true>(
-                r.node,
-                &lr,
-                &lb,
-                &lw,
-                t_max,
-                &mut walk.stack,
-                &mut walk.inner,
-            )
-            .is_some()
-        })
-    }
-
-    /// Visit the top-level leaves the ray enters (wide SIMD traversal, or
-    /// the binary one), calling `leaf(refs, t_max) -> stop`.
-    #[inline(always)]
-    fn walk_top<L>(&self, ray: &Ray, bray: &BoxRay, counters: &mut TraversalCounters, mut leaf: L)
-    where
-        L: FnMut(std::ops::Range<usize>, &mut f32) -> bool,
-    {
-        match (&self.wide, self.tree.nodes.first()) {
-            (Some(wide), Some(root)) => {
-                if bray.hit_node(root, ray.t_min, ray.t_max) < f32::INFINITY {
-                    traverse_wide(
-                        &wide.nodes,
-                        self.kernel,
-                        0,
-                        ray,
-                        ray.t_max,
-                        counters,
-                        |first, count, t_max| leaf(first as usize..(first + count) as usize, t_max),
-                    );
-                }
-            }
-            _ => self
-                .tree
-                .traverse(bray, ray.t_min, ray.t_max, counters, |node, t_max| {
-                    leaf(node.prim_range(), t_max)
-                }),
-        }
-    }
-
     #[inline(always)]
     fn object(&self, r: &TopRef) -> Option<&ObjectBvh> {
         self.objects
@@ -410,20 +371,13 @@ impl TopLevelAccel {
         if !ray.is_valid() {
             return None;
         }
-        let bray = BoxRay::new(ray.origin, ray.dir);
-        let wray = WatertightRay::new(ray.origin, ray.dir);
-        let mut walk = RefWalk {
+        let mut walk = RayWalk::<false> {
+            accel: self,
+            ray,
+            counters,
             best: None,
-            cached: None,
-            stack: [(0u32, 0.0f32); TRAVERSAL_STACK],
-            inner: TraversalCounters::default(),
         };
-        self.walk_top(ray, &bray, counters, |refs, t_max| {
-            self.refs_closest(refs, ray, &bray, &wray, t_max, &mut walk);
-            false
-        });
-        counters.inner_visited += walk.inner.inner_visited;
-        counters.leaves_visited += walk.inner.leaves_visited;
+        with_kernel(self.kernel, &mut walk);
         walk.best.map(|h| self.make_hit(h))
     }
 
@@ -446,25 +400,14 @@ impl TopLevelAccel {
         if !ray.is_valid() {
             return false;
         }
-        let bray = BoxRay::new(ray.origin, ray.dir);
-        let wray = WatertightRay::new(ray.origin, ray.dir);
-        let mut walk = RefWalk {
-            best: None,
-            cached: None,
-            stack: [(0u32, 0.0f32); TRAVERSAL_STACK],
-            inner: TraversalCounters::default(),
-        };
-        let mut hit = false;
-        self.walk_top(
+        let mut walk = RayWalk::<true> {
+            accel: self,
             ray,
-            &bray,
-            &mut TraversalCounters::default(),
-            |refs, t_max| {
-                hit = self.refs_occluded(refs, ray, &bray, &wray, *t_max, &mut walk);
-                hit
-            },
-        );
-        hit
+            counters: &mut TraversalCounters::default(),
+            best: None,
+        };
+        with_kernel(self.kernel, &mut walk);
+        walk.best.is_some()
     }
 
     /// The SAH statistic of the tree as traversed: from the top-level root
