@@ -17,11 +17,20 @@ fn params(mode: AccelMode) -> SceneParams {
     }
 }
 
-/// Build the model's scene in every mode and check each against the brute
-/// force (flat mode bit-exactly, the two-level modes up to instance rounding).
+/// Build the model's scene in every mode with every traversal kernel this
+/// CPU runs (scalar, SSE, AVX2) and check each against the brute force (flat
+/// mode bit-exactly, the two-level modes up to instance rounding).
 fn all_modes_vs_brute(model: &Model, rays: &[Ray], what: &str) {
+    for kernel in rebraid::bvh::Kernel::available() {
+        let mut p = params(AccelMode::Flat);
+        p.kernel = Some(kernel);
+        all_modes_vs_brute_with(model, rays, &format!("{what} {kernel:?}"), p);
+    }
+}
+
+fn all_modes_vs_brute_with(model: &Model, rays: &[Ray], what: &str, params: SceneParams) {
     let world = model.world();
-    let mut scene = model.to_scene(params(AccelMode::Flat));
+    let mut scene = model.to_scene(params);
     for mode in AccelMode::ALL {
         scene.set_mode(mode);
         let rep = scene.commit().unwrap();

@@ -39,7 +39,7 @@ pub struct FlatPart<'a> {
 }
 
 impl FlatAccel {
-    pub fn build(parts: &[FlatPart], params: &BuildParams) -> Result<Self, Error> {
+    pub fn build(parts: &[FlatPart], params: &BuildParams, kernel: Kernel) -> Result<Self, Error> {
         let total_v: usize = parts.iter().map(|p| p.mesh.positions.len()).sum();
         let total_t: usize = parts.iter().map(|p| p.mesh.len()).sum();
         let mut positions: Vec<Vec3> = Vec::with_capacity(total_v);
@@ -65,7 +65,7 @@ impl FlatAccel {
         Ok(Self {
             bvh,
             wide,
-            kernel: Kernel::best(),
+            kernel,
             origins,
         })
     }

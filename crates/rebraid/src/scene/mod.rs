@@ -19,7 +19,7 @@ use rayon::prelude::*;
 use flat::FlatPart;
 pub use flat::{FlatAccel, PrimOrigin};
 
-use crate::bvh::{BuildParams, BvhStats, SahCosts, TraversalCounters};
+use crate::bvh::{BuildParams, BvhStats, Kernel, SahCosts, TraversalCounters};
 use crate::toplevel::builder::{RefSources, TopLevelScratch, build_top_level_with};
 use crate::toplevel::{
     BuildRef, InstanceXf, ObjectBvh, RebraidParams, TopLevelAccel, TopLevelBuildStats,
@@ -83,6 +83,9 @@ pub struct SceneParams {
     /// Top level of the re-braided mode (the two-level mode uses the same
     /// parameters with opening off).
     pub rebraid: RebraidParams,
+    /// Traversal kernel; `None` picks the best this CPU runs
+    /// ([`Kernel::best`]). Tests force each kernel to compare them.
+    pub kernel: Option<Kernel>,
 }
 
 /// How a commit brings the BVH of an object whose vertices moved up to date.
@@ -500,7 +503,11 @@ impl Scene {
                     });
                 }
             }
-            let flat = FlatAccel::build(&parts, &self.params.object_build)?;
+            let flat = FlatAccel::build(
+                &parts,
+                &self.params.object_build,
+                self.params.kernel.unwrap_or_else(Kernel::best),
+            )?;
             report.top_build_ms = t.elapsed().as_secs_f64() * 1e3;
             self.accel = if flat.bvh.is_empty() {
                 Accel::Empty
@@ -668,7 +675,14 @@ impl Scene {
             self.top_initial = refs;
         }
         let (tree, top_refs, build_stats) = built?;
-        let accel = TopLevelAccel::new(tree, top_refs, objects, instances, build_stats);
+        let accel = TopLevelAccel::new(
+            tree,
+            top_refs,
+            objects,
+            instances,
+            build_stats,
+            self.params.kernel.unwrap_or_else(Kernel::best),
+        );
         #[cfg(debug_assertions)]
         if let Err(e) = accel.validate() {
             panic!("top-level builder produced an invalid tree: {e}");

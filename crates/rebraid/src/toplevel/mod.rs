@@ -43,8 +43,6 @@ pub struct ObjectBvh {
     pub wide: Option<WideBvh<8>>,
     /// For each binary node, the wide node collapsed from it, or `WIDE_EMPTY`.
     pub wide_of: Vec<u32>,
-    /// The SIMD kernel of this CPU ([`Kernel::best`]).
-    pub kernel: Kernel,
 }
 
 impl ObjectBvh {
@@ -56,7 +54,6 @@ impl ObjectBvh {
             subtree_cost: vec![0.0; n],
             wide: None,
             wide_of: Vec::new(),
-            kernel: Kernel::best(),
         };
         o.update_counts_and_costs();
         o.collapse_wide();
@@ -248,7 +245,7 @@ pub struct TopLevelAccel {
     /// The 8-wide layout of `tree` that traversal uses (leaves are single
     /// refs); `None` only for an empty tree.
     pub wide: Option<WideBvh<8>>,
-    /// The SIMD kernel of this CPU ([`Kernel::best`]).
+    /// The traversal kernel (the scene's choice, by default [`Kernel::best`]).
     pub kernel: Kernel,
 }
 
@@ -334,13 +331,15 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
 }
 
 impl TopLevelAccel {
-    /// Assemble a committed top level and collapse its tree to 8 wide.
+    /// Assemble a committed top level and collapse its tree to 8 wide;
+    /// traversal runs `kernel` (falling back to scalar when unavailable).
     pub fn new(
         tree: Bvh,
         refs: Vec<TopRef>,
         objects: Vec<Option<Arc<ObjectBvh>>>,
         instances: Vec<InstanceXf>,
         build_stats: TopLevelBuildStats,
+        kernel: Kernel,
     ) -> Self {
         let wide = WideBvh::<8>::from_bvh(&tree).ok().filter(|w| !w.is_empty());
         Self {
@@ -350,7 +349,7 @@ impl TopLevelAccel {
             instances,
             build_stats,
             wide,
-            kernel: Kernel::best(),
+            kernel,
         }
     }
 
