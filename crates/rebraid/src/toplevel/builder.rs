@@ -769,7 +769,6 @@ fn build_list(
         return BvhNode::leaf(bounds, first, 1);
     }
     let mut n = n;
-    let mut split = find_split(ctx, &list[..n], &cbounds, depth);
     for _ in 0..ctx.params.open_rounds {
         if !(ctx.params.open
             && depth < MEDIAN_FROM_DEPTH
@@ -783,8 +782,8 @@ fn build_list(
         }
         n = opened;
         (bounds, cbounds) = list_bounds(&list[..n], n > ctx.params.parallel_threshold);
-        split = find_split(ctx, &list[..n], &cbounds, depth);
     }
+    let split = find_split(ctx, &list[..n], &cbounds, depth);
     // A leaf of several refs when the SAH prefers it: the refs' costs as seen
     // from this node's box against one traversal step plus the split.
     if n <= ctx.params.max_leaf_refs {
