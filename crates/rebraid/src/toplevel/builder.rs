@@ -4,10 +4,13 @@
 //! Partial Re-Braiding", HPG 2017 (see `shared/docs/rebraiding.md`). The build
 //! is a top-down binned SAH build over *build refs*, each a reference to an
 //! object-BVH node. At every step, before partitioning a list, refs that are
-//! large relative to the list (extent along the list's longest axis above
-//! `threshold` times the list's extent) are *opened*: replaced by their two
-//! children, one level per step. Deeper levels open in later steps, when the
-//! shrinking lists make the remaining refs large relative to them.
+//! large relative to the list (extent above `threshold` times the list's
+//! extent) are *opened*: replaced by their children. Deeper levels open in
+//! later steps, when the shrinking lists make the remaining refs large
+//! relative to them. Refs name binary object-BVH nodes (the build, SAH and
+//! statistics structure), but an opened ref yields the children of the
+//! 8-wide node collapsed from its node (up to 8), so every top-level leaf
+//! enters an object BVH at a node the SIMD traversal starts from.
 //!
 //! Memory: the ref array is allocated once with spare slots (Embree's sizing
 //! by default). A list owns `list.len()` array slots, its refs first; after a
@@ -29,8 +32,9 @@
 //!   their primitive count;
 //! - refs may carry an instance transform and be opened through it
 //!   ([`RebraidParams::open_instances`]): the children's world boxes are their
-//!   transformed object-space boxes.
-
+//!   transformed object-space boxes (for leaves: the box of their transformed
+//!   vertices);
+//! - the pairwise-overlap termination test covers lists of up to 64 refs.
 //!
 //! Tried and rejected (figures from `rebraid stats`, SAH cost, on the shared
 //! scenes): an "SAH guard" that keeps an opening round only when the opened
@@ -40,7 +44,8 @@
 //! samurai 42.9 (30.5), cocoa temple 22.8 (18.9); it helped only on
 //! 2CylinderEngine (100.1 against 105.8), where opening interpenetrating parts
 //! hurts. Top-level leaves of up to 4 refs chosen by the SAH: nexuiz 56.1
-//! against 54.8, no change elsewhere.
+//! against 54.8, no change elsewhere. (These figures predate opening by wide
+//! nodes.)
 
 use std::sync::atomic::{AtomicU64, Ordering};
 
