@@ -15,16 +15,15 @@
 
 #[path = "../tests/common/mod.rs"]
 mod common;
+mod support;
 
 use std::collections::HashMap;
 use std::sync::{Mutex, OnceLock};
 
 use divan::counter::ItemsCount;
 use divan::{Bencher, black_box};
-use rand::Rng;
 use rebraid::bvh::{Kernel, WideMeshBvh};
-use rebraid::glam::Vec3;
-use rebraid::{Aabb, BuildParams, MeshBvh, Ray, TriangleMesh};
+use rebraid::{BuildParams, MeshBvh, Ray};
 
 fn main() {
     for scene in SCENES {
@@ -55,74 +54,6 @@ struct Prepared {
     incoherent: Vec<Ray>,
 }
 
-/// About a million triangles: a 500 x 500 height-field terrain (500k) and
-/// 400 icospheres of 1,280 triangles (512k); the `kernel` bench's scene.
-fn generated_scene() -> TriangleMesh {
-    let mut r = common::rng(7);
-    let n = 500u32;
-    let mut positions = Vec::new();
-    for y in 0..=n {
-        for x in 0..=n {
-            let (fx, fy) = (x as f32, y as f32);
-            let h = 8.0 * (fx * 0.05).sin() * (fy * 0.037).cos() + r.gen_range(0.0..0.3);
-            positions.push(Vec3::new(fx, fy, h));
-        }
-    }
-    let id = |x: u32, y: u32| y * (n + 1) + x;
-    let mut indices = Vec::new();
-    for y in 0..n {
-        for x in 0..n {
-            indices.push([id(x, y), id(x + 1, y), id(x + 1, y + 1)]);
-            indices.push([id(x, y), id(x + 1, y + 1), id(x, y + 1)]);
-        }
-    }
-    for _ in 0..400 {
-        let c = Vec3::new(
-            r.gen_range(0.0..500.0),
-            r.gen_range(0.0..500.0),
-            r.gen_range(5.0..40.0),
-        );
-        let s = common::icosphere(3, r.gen_range(1.0..12.0), c);
-        let base = positions.len() as u32;
-        positions.extend(&s.positions);
-        indices.extend(s.indices.iter().map(|t| t.map(|i| i + base)));
-    }
-    TriangleMesh::new(positions, indices).unwrap()
-}
-
-fn load(name: &str) -> Option<TriangleMesh> {
-    if name == "generated_1m" {
-        return Some(generated_scene());
-    }
-    let path = common::obj::scene_path_or_skip(&format!("{name}.obj"))?;
-    Some(common::obj::load_obj(&path))
-}
-
-/// Pinhole camera rays from the middle of the scene (as the `kernel` bench).
-fn camera_rays(bounds: &Aabb) -> Vec<Ray> {
-    let eye = bounds.center();
-    let forward = Vec3::new(1.0, 0.35, -0.25).normalize();
-    let right = forward.cross(Vec3::Z).normalize();
-    let up = right.cross(forward);
-    let side = (RAYS as f64).sqrt() as usize;
-    (0..RAYS)
-        .map(|i| {
-            let (x, y) = (i % side, i / side);
-            let sx = (x as f32 + 0.5) / side as f32 * 2.0 - 1.0;
-            let sy = (y as f32 + 0.5) / side as f32 * 2.0 - 1.0;
-            Ray::infinite(eye, forward + right * sx + up * sy)
-        })
-        .collect()
-}
-
-/// Random origins in the scene box and random directions.
-fn random_rays(bounds: &Aabb) -> Vec<Ray> {
-    let mut r = common::rng(8);
-    (0..RAYS)
-        .map(|_| Ray::infinite(common::point_in(&mut r, bounds), common::unit_dir(&mut r)))
-        .collect()
-}
-
 /// The kernel of a wide variant, or `None` for the binary one or one this
 /// CPU cannot run.
 fn kernel_of(variant: &str) -> Option<Kernel> {
@@ -151,7 +82,7 @@ fn prepared(name: &'static str) -> Option<&'static Prepared> {
     let cache = CACHE.get_or_init(Default::default);
     let mut cache = cache.lock().unwrap();
     *cache.entry(name).or_insert_with(|| {
-        let mesh = load(name)?;
+        let mesh = support::load(name)?;
         let bvh = MeshBvh::build(&mesh, &BuildParams::default()).unwrap();
         let w4 = WideMeshBvh::<4>::from_mesh(&bvh).unwrap();
         let w8 = WideMeshBvh::<8>::from_mesh(&bvh).unwrap();
@@ -162,8 +93,8 @@ fn prepared(name: &'static str) -> Option<&'static Prepared> {
             bvh,
             w4,
             w8,
-            coherent: camera_rays(&b),
-            incoherent: random_rays(&b),
+            coherent: support::camera_rays(&b, RAYS),
+            incoherent: support::random_rays(&b, RAYS),
         };
         // Validate every kernel against the binary scalar kernel first.
         for rays in [&p.coherent, &p.incoherent] {

@@ -1,0 +1,77 @@
+//! Scenes and ray sets shared by the `kernel` and `wide` benches.
+
+use rand::Rng;
+use rebraid::glam::Vec3;
+use rebraid::{Aabb, Ray, TriangleMesh};
+
+use crate::common;
+
+/// About a million triangles: a 500 x 500 height-field terrain (500k) and
+/// 400 icospheres of 1,280 triangles scattered over it (512k).
+pub fn generated_scene() -> TriangleMesh {
+    let mut r = common::rng(7);
+    let n = 500u32;
+    let mut positions = Vec::new();
+    for y in 0..=n {
+        for x in 0..=n {
+            let (fx, fy) = (x as f32, y as f32);
+            let h = 8.0 * (fx * 0.05).sin() * (fy * 0.037).cos() + r.gen_range(0.0..0.3);
+            positions.push(Vec3::new(fx, fy, h));
+        }
+    }
+    let id = |x: u32, y: u32| y * (n + 1) + x;
+    let mut indices = Vec::new();
+    for y in 0..n {
+        for x in 0..n {
+            indices.push([id(x, y), id(x + 1, y), id(x + 1, y + 1)]);
+            indices.push([id(x, y), id(x + 1, y + 1), id(x, y + 1)]);
+        }
+    }
+    for _ in 0..400 {
+        let c = Vec3::new(
+            r.gen_range(0.0..500.0),
+            r.gen_range(0.0..500.0),
+            r.gen_range(5.0..40.0),
+        );
+        let s = common::icosphere(3, r.gen_range(1.0..12.0), c);
+        let base = positions.len() as u32;
+        positions.extend(&s.positions);
+        indices.extend(s.indices.iter().map(|t| t.map(|i| i + base)));
+    }
+    TriangleMesh::new(positions, indices).unwrap()
+}
+
+/// The mesh of a scene, or `None` (after a message) for a missing real scene.
+pub fn load(name: &str) -> Option<TriangleMesh> {
+    if name == "generated_1m" {
+        return Some(generated_scene());
+    }
+    let path = common::obj::scene_path_or_skip(&format!("{name}.obj"))?;
+    Some(common::obj::load_obj(&path))
+}
+
+/// Pinhole camera rays from the middle of the scene towards a fixed, slightly
+/// downward direction (every scene has content around its centre).
+pub fn camera_rays(bounds: &Aabb, rays: usize) -> Vec<Ray> {
+    let eye = bounds.center();
+    let forward = Vec3::new(1.0, 0.35, -0.25).normalize();
+    let right = forward.cross(Vec3::Z).normalize();
+    let up = right.cross(forward);
+    let side = (rays as f64).sqrt() as usize;
+    (0..rays)
+        .map(|i| {
+            let (x, y) = (i % side, i / side);
+            let sx = (x as f32 + 0.5) / side as f32 * 2.0 - 1.0;
+            let sy = (y as f32 + 0.5) / side as f32 * 2.0 - 1.0;
+            Ray::infinite(eye, forward + right * sx + up * sy)
+        })
+        .collect()
+}
+
+/// Random origins in the scene box and random directions.
+pub fn random_rays(bounds: &Aabb, rays: usize) -> Vec<Ray> {
+    let mut r = common::rng(8);
+    (0..rays)
+        .map(|_| Ray::infinite(common::point_in(&mut r, bounds), common::unit_dir(&mut r)))
+        .collect()
+}
