@@ -383,14 +383,12 @@ fn build_node(
     };
 
     let nl = mid;
-    let (pair, rest) = desc.split_at_mut(2);
-    let (left_desc, right_desc) = rest.split_at_mut(2 * nl - 2);
+    let (pair, (left_desc, left_desc_first), (right_desc, right_desc_first)) =
+        split_slots(desc, desc_first, nl);
     let (lp, rp) = prims.split_at_mut(mid);
     let (ls, rs) = scratch.split_at_mut(mid);
     let left_first = first;
     let right_first = first + nl as u32;
-    let left_desc_first = desc_first + 2;
-    let right_desc_first = desc_first + 2 * nl as u32;
     let mut build_left = move || {
         build_node(
             ctx,
@@ -425,6 +423,26 @@ fn build_node(
     pair[0] = l;
     pair[1] = r;
     BvhNode::inner(bounds, desc_first)
+}
+
+/// Split the descendant slots of a node whose left child covers `left_len`
+/// primitive (or ref array) positions: the children pair, then the left
+/// subtree's `2 * left_len - 2` descendant slots, then the right subtree's;
+/// each region with its global first slot. The one place that states the
+/// slot layout both builders rely on (see the module docs).
+#[allow(clippy::type_complexity)]
+pub(crate) fn split_slots(
+    desc: &mut [BvhNode],
+    desc_first: u32,
+    left_len: usize,
+) -> (&mut [BvhNode], (&mut [BvhNode], u32), (&mut [BvhNode], u32)) {
+    let (pair, rest) = desc.split_at_mut(2);
+    let (left, right) = rest.split_at_mut(2 * left_len - 2);
+    (
+        pair,
+        (left, desc_first + 2),
+        (right, desc_first + 2 * left_len as u32),
+    )
 }
 
 /// Renumber the used node slots of a slot-layout build into depth-first

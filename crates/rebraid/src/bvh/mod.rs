@@ -10,8 +10,8 @@ mod traverse;
 mod validate;
 pub mod wide;
 
-pub(crate) use build::compact_slots;
 pub use build::{BuildParams, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh};
+pub(crate) use build::{compact_slots, split_slots};
 pub use node::BvhNode;
 pub use simd::{
     BoxTester, Kernel, TesterFactory, WIDE_STACK, WideMeshBvh, WideQuery, query_subtree,

@@ -54,7 +54,7 @@ use rayon::prelude::*;
 use super::{InstanceXf, ObjectBvh, TopRef};
 use crate::bvh::binning::{BinMapping, BinRange, Bins, MAX_BINS, SplitCandidate, with_bins};
 use crate::bvh::wide::WIDE_EMPTY;
-use crate::bvh::{Bvh, BvhNode, MEDIAN_FROM_DEPTH, compact_slots};
+use crate::bvh::{Bvh, BvhNode, MEDIAN_FROM_DEPTH, compact_slots, split_slots};
 use crate::{Aabb, Error, INVALID_ID};
 
 /// How many ref slots the build may use in all.
@@ -842,14 +842,12 @@ fn build_list(
     list.copy_within(nl..n, nl + left_spare);
     let left_len = nl + left_spare;
 
-    let (pair, rest) = desc.split_at_mut(2);
-    let (left_desc, right_desc) = rest.split_at_mut(2 * left_len - 2);
+    let (pair, (left_desc, left_desc_first), (right_desc, right_desc_first)) =
+        split_slots(desc, desc_first, left_len);
     let (left_list, right_list) = list.split_at_mut(left_len);
     let (left_scratch, right_scratch) = scratch.split_at_mut(left_len);
     let nr = n - nl;
     let right_first = first + left_len as u32;
-    let left_desc_first = desc_first + 2;
-    let right_desc_first = desc_first + 2 * left_len as u32;
     let mut build_left = move || {
         build_list(
             ctx,
