@@ -7,6 +7,7 @@ mod refit;
 pub mod simd;
 mod stats;
 mod traverse;
+pub mod triangle4;
 mod validate;
 pub mod wide;
 
@@ -19,6 +20,7 @@ pub use simd::{
 };
 pub use stats::{BvhStats, SahCosts};
 pub use traverse::{BoxRay, TRAVERSAL_STACK, TraversalCounters, TraversalStack};
+pub use triangle4::{Triangle4, WideTriangleBvh};
 pub use wide::{WideBvh, WideNode, WideStats};
 
 /// A binary BVH over primitives known only by index.

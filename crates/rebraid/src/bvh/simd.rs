@@ -18,19 +18,23 @@
 //! BVH Ray Traversal", JCGT 2(2), 2013). The near plane of each axis is
 //! picked per ray by the direction's sign (Williams et al. 2005), which gives
 //! the same values as `hit_node`'s min/max for real boxes and keeps the empty
-//! slots' inverted boxes unhittable. Leaves run the scalar watertight
-//! triangle test over the same leaf-order triangles, so hits are
-//! bit-identical to [`MeshBvh`]'s.
+//! slots' inverted boxes unhittable. Leaves hold [`Triangle4`] blocks: the
+//! SIMD kernels test four triangles at once, the scalar one loops over the
+//! lanes, and both give hits bit-identical to [`MeshBvh`]'s (see
+//! [`super::triangle4`]).
 
 use std::mem::MaybeUninit;
 
 use glam::Vec3;
 
+use super::triangle4::{
+    LeafHit, Triangle4, block_boxes, intersect_blocks, pack_triangle4, validate_blocks,
+};
 use super::wide::{WideBvh, WideNode, WideStats, decode_leaf, is_leaf_ref};
 use super::{BoxRay, BvhNode, MAX_DEPTH, TraversalCounters};
 use crate::mesh::MeshBvh;
-use crate::triangle::{WatertightRay, geometric_normal, intersect_triangle};
-use crate::{Aabb, Error, Hit, INVALID_ID, Ray};
+use crate::triangle::{WatertightRay, geometric_normal};
+use crate::{Error, Hit, INVALID_ID, Ray};
 
 /// The slab test's padding, the same constant as the binary traversal's
 /// (`1 + 2 * gamma(3)`, Ize 2013).
@@ -93,6 +97,10 @@ impl Kernel {
 /// hit children and writes their entry distances to `dist`. A lane is hit
 /// exactly when [`BoxRay::hit_node`] would return a finite distance for it.
 pub trait BoxTester<const W: usize> {
+    /// Whether leaves run the SSE four-triangle test
+    /// ([`super::triangle4`]) under this tester; the scalar reference
+    /// keeps the scalar triangle loop.
+    const SIMD_TRIANGLES: bool = true;
     fn test(&self, node: &WideNode<W>, t_max: f32, dist: &mut [f32; W]) -> u32;
 }
 
@@ -104,6 +112,7 @@ struct ScalarTester {
 }
 
 impl<const W: usize> BoxTester<W> for ScalarTester {
+    const SIMD_TRIANGLES: bool = false;
     #[inline(always)]
     fn test(&self, node: &WideNode<W>, t_max: f32, dist: &mut [f32; W]) -> u32 {
         let mut mask = 0;
@@ -295,7 +304,7 @@ mod x86 {
 /// primitive slots, may shrink `t_max` (closest hit) and returns `true` to
 /// stop (any hit).
 #[inline(always)]
-fn traverse<const W: usize, B, L>(
+fn traverse<const W: usize, const ANY: bool, B, L>(
     nodes: &[WideNode<W>],
     tester: &B,
     start: u32,
@@ -326,6 +335,20 @@ fn traverse<const W: usize, B, L>(
                 mask &= mask - 1;
                 if mask == 0 {
                     current = node.child[i];
+                    continue;
+                }
+                if ANY {
+                    // Occlusion: any hit ends the query, so order buys
+                    // little; push the other hits unsorted (as Embree's
+                    // any-hit traversal does) and go to the first slot.
+                    let first = node.child[i];
+                    while mask != 0 {
+                        let j = mask.trailing_zeros() as usize;
+                        mask &= mask - 1;
+                        stack[sp].write((node.child[j], dist[j]));
+                        sp += 1;
+                    }
+                    current = first;
                     continue;
                 }
                 // Two or more hits: insertion-sort them by entry distance
@@ -364,7 +387,8 @@ fn traverse<const W: usize, B, L>(
             // SAFETY: entries below `sp` were all written by the push above
             // (`sp` only grows by writing `stack[sp]`).
             let (r, d) = unsafe { stack[sp].assume_init() };
-            if d <= t_max * ROBUST_FAR {
+            // An any-hit query never shrinks `t_max`: nothing to cull.
+            if ANY || d <= t_max * ROBUST_FAR {
                 current = r;
                 break;
             }
@@ -380,8 +404,12 @@ fn traverse<const W: usize, B, L>(
 /// to the build; the binary tree may be dropped afterwards.
 #[derive(Clone, Debug)]
 pub struct WideMeshBvh<const W: usize> {
+    /// The wide tree; its leaves name ranges of `blocks`.
     pub wide: WideBvh<W>,
-    /// Vertices of each triangle, in the binary tree's leaf order.
+    /// The leaves' triangles, four to a block.
+    pub blocks: Vec<Triangle4>,
+    /// Vertices of each triangle, in the binary tree's leaf order (for hit
+    /// normals and validation).
     pub triangles: Vec<[Vec3; 3]>,
     /// Mesh primitive id of each leaf-order slot.
     pub prim_indices: Vec<u32>,
@@ -393,8 +421,11 @@ impl<const W: usize> WideMeshBvh<W> {
     /// Collapse the mesh BVH's tree (see [`WideBvh::from_bvh`]) and copy its
     /// triangles; the kernel is [`Kernel::best`].
     pub fn from_mesh(mesh: &MeshBvh) -> Result<Self, Error> {
+        let mut wide = WideBvh::from_bvh(&mesh.bvh)?;
+        let blocks = pack_triangle4(&mut wide, &mesh.triangles);
         Ok(Self {
-            wide: WideBvh::from_bvh(&mesh.bvh)?,
+            wide,
+            blocks,
             triangles: mesh.triangles.clone(),
             prim_indices: mesh.bvh.prim_indices.clone(),
             kernel: Kernel::best(),
@@ -464,10 +495,12 @@ impl<const W: usize> WideMeshBvh<W> {
         crate::ray::par_query(rays, out, |r| self.occluded(r));
     }
 
-    /// Node statistics; `bytes` adds the triangles and primitive ids.
+    /// Node statistics; `bytes` adds the blocks, triangles and primitive
+    /// ids.
     pub fn stats(&self) -> WideStats {
         let mut s = self.wide.stats();
-        s.bytes += std::mem::size_of_val(self.triangles.as_slice())
+        s.bytes += std::mem::size_of_val(self.blocks.as_slice())
+            + std::mem::size_of_val(self.triangles.as_slice())
             + std::mem::size_of_val(self.prim_indices.as_slice());
         s
     }
@@ -477,12 +510,9 @@ impl<const W: usize> WideMeshBvh<W> {
         if self.prim_indices.len() != self.triangles.len() {
             return Err("primitive ids and triangles differ in number".into());
         }
-        let boxes: Vec<Aabb> = self
-            .triangles
-            .iter()
-            .map(|t| Aabb::from_points(t))
-            .collect();
-        self.wide.validate(&boxes)
+        validate_blocks(&self.blocks, &self.triangles)?;
+        self.wide
+            .validate(&block_boxes(&self.blocks, &self.triangles))
     }
 
     fn make_hit(&self, (t, u, v, k): (f32, f32, f32, u32)) -> Hit {
@@ -501,7 +531,7 @@ impl<const W: usize> WideMeshBvh<W> {
     /// The closest (or, with `ANY`, some) hit as (t, u, v, leaf-order slot).
     /// `kernel` must be available (checked by every caller).
     #[inline(always)]
-    fn query<const ANY: bool>(&self, kernel: Kernel, ray: &Ray) -> Option<(f32, f32, f32, u32)> {
+    fn query<const ANY: bool>(&self, kernel: Kernel, ray: &Ray) -> Option<LeafHit> {
         if !ray.is_valid() || self.wide.is_empty() {
             return None;
         }
@@ -534,14 +564,14 @@ impl<const W: usize> WideMeshBvh<W> {
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "sse4.1")]
-    fn query_sse<const ANY: bool>(&self, ray: &Ray) -> Option<(f32, f32, f32, u32)> {
+    fn query_sse<const ANY: bool>(&self, ray: &Ray) -> Option<LeafHit> {
         let tester = x86::SseTester::new(ray.origin, ray.dir, ray.t_min);
         self.run::<ANY, _>(&tester, ray)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    fn query_avx2<const ANY: bool>(&self, ray: &Ray) -> Option<(f32, f32, f32, u32)> {
+    fn query_avx2<const ANY: bool>(&self, ray: &Ray) -> Option<LeafHit> {
         let tester = x86::Avx2Tester::new(ray.origin, ray.dir, ray.t_min);
         // `W == 8` on this path (see `query`); the cast is a no-op then.
         let nodes: &[WideNode<8>] = {
@@ -557,7 +587,7 @@ impl<const W: usize> WideMeshBvh<W> {
         };
         run_on::<8, ANY, _>(
             nodes,
-            &self.triangles,
+            &self.blocks,
             &tester,
             ray,
             0,
@@ -567,14 +597,10 @@ impl<const W: usize> WideMeshBvh<W> {
     }
 
     #[inline(always)]
-    fn run<const ANY: bool, B: BoxTester<W>>(
-        &self,
-        tester: &B,
-        ray: &Ray,
-    ) -> Option<(f32, f32, f32, u32)> {
+    fn run<const ANY: bool, B: BoxTester<W>>(&self, tester: &B, ray: &Ray) -> Option<LeafHit> {
         run_on::<W, ANY, B>(
             &self.wide.nodes,
-            &self.triangles,
+            &self.blocks,
             tester,
             ray,
             0,
@@ -584,30 +610,39 @@ impl<const W: usize> WideMeshBvh<W> {
     }
 }
 
-/// One query over a wide tree with the scalar watertight test in the leaves
-/// (the same loop and tie rule as [`MeshBvh::intersect_leaf`] and
+/// One query over a wide tree whose leaves name [`Triangle4`] blocks (the
+/// same answers and tie rule as [`MeshBvh::intersect_leaf`] and
 /// [`MeshBvh::occluded_leaf`]).
 #[inline(always)]
 fn run_on<const W: usize, const ANY: bool, B: BoxTester<W>>(
     nodes: &[WideNode<W>],
-    triangles: &[[Vec3; 3]],
+    blocks: &[Triangle4],
     tester: &B,
     ray: &Ray,
     start: u32,
     t_max: f32,
     counters: &mut TraversalCounters,
-) -> Option<(f32, f32, f32, u32)> {
+) -> Option<LeafHit> {
     let wray = WatertightRay::new(ray.origin, ray.dir);
     let t_min = ray.t_min;
-    let mut best: Option<(f32, f32, f32, u32)> = None;
-    traverse(
+    let mut best: Option<LeafHit> = None;
+    traverse::<W, ANY, _, _>(
         nodes,
         tester,
         start,
         t_max,
         counters,
         |first, count, t_max| {
-            leaf_triangles::<ANY>(triangles, &wray, t_min, first, count, t_max, &mut best)
+            intersect_blocks::<ANY>(
+                blocks,
+                &wray,
+                t_min,
+                first,
+                count,
+                t_max,
+                &mut best,
+                B::SIMD_TRIANGLES,
+            )
         },
     );
     best
@@ -617,11 +652,12 @@ fn run_on<const W: usize, const ANY: bool, B: BoxTester<W>>(
 /// tested) with `kernel`, near children first, calling `leaf(first, count,
 /// t_max)` for each leaf the ray segment `[ray.t_min, t_max]` enters; the
 /// callback may shrink `t_max` (closest hit) and returns `true` to stop.
-/// The top level (leaves are refs) and the object level (leaves are
+/// With `ANY` (occlusion) children are visited in slot order instead, and
+/// the callback must not shrink `t_max`. The top level (leaves are refs) and the object level (leaves are
 /// triangles) both run through this. An unavailable `kernel` falls back to
 /// the scalar one.
 #[inline]
-pub fn traverse_wide<L>(
+pub fn traverse_wide<const ANY: bool, L>(
     nodes: &[WideNode<8>],
     kernel: Kernel,
     start: u32,
@@ -636,26 +672,26 @@ pub fn traverse_wide<L>(
         #[cfg(target_arch = "x86_64")]
         Kernel::Avx2 if kernel.is_available() => {
             // SAFETY: the CPU has AVX2 and FMA (checked just above).
-            unsafe { traverse_avx2(nodes, start, ray, t_max, counters, leaf) }
+            unsafe { traverse_avx2::<ANY, _>(nodes, start, ray, t_max, counters, leaf) }
         }
         #[cfg(target_arch = "x86_64")]
         Kernel::Sse | Kernel::Avx2 if Kernel::Sse.is_available() => {
             // SAFETY: the CPU has SSE4.1 (checked just above).
-            unsafe { traverse_sse(nodes, start, ray, t_max, counters, leaf) }
+            unsafe { traverse_sse::<ANY, _>(nodes, start, ray, t_max, counters, leaf) }
         }
         _ => {
             let tester = ScalarTester {
                 ray: BoxRay::new(ray.origin, ray.dir),
                 t_min: ray.t_min,
             };
-            traverse(nodes, &tester, start, t_max, counters, leaf)
+            traverse::<8, ANY, _, _>(nodes, &tester, start, t_max, counters, leaf)
         }
     }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-fn traverse_avx2<L: FnMut(u32, u32, &mut f32) -> bool>(
+fn traverse_avx2<const ANY: bool, L: FnMut(u32, u32, &mut f32) -> bool>(
     nodes: &[WideNode<8>],
     start: u32,
     ray: &Ray,
@@ -664,12 +700,12 @@ fn traverse_avx2<L: FnMut(u32, u32, &mut f32) -> bool>(
     leaf: L,
 ) {
     let tester = x86::Avx2Tester::new(ray.origin, ray.dir, ray.t_min);
-    traverse(nodes, &tester, start, t_max, counters, leaf)
+    traverse::<8, ANY, _, _>(nodes, &tester, start, t_max, counters, leaf)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "sse4.1")]
-fn traverse_sse<L: FnMut(u32, u32, &mut f32) -> bool>(
+fn traverse_sse<const ANY: bool, L: FnMut(u32, u32, &mut f32) -> bool>(
     nodes: &[WideNode<8>],
     start: u32,
     ray: &Ray,
@@ -678,7 +714,7 @@ fn traverse_sse<L: FnMut(u32, u32, &mut f32) -> bool>(
     leaf: L,
 ) {
     let tester = x86::SseTester::new(ray.origin, ray.dir, ray.t_min);
-    traverse(nodes, &tester, start, t_max, counters, leaf)
+    traverse::<8, ANY, _, _>(nodes, &tester, start, t_max, counters, leaf)
 }
 
 /// Makes one kernel's box tester for a ray. A two-level traversal gets a
@@ -769,7 +805,7 @@ fn run_sse<Q: WideQuery>(query: &mut Q) {
 
 /// [`traverse_wide`] with a caller's tester (inside [`WideQuery::run`]).
 #[inline(always)]
-pub fn traverse_with<B, L>(
+pub fn traverse_with<const ANY: bool, B, L>(
     nodes: &[WideNode<8>],
     tester: &B,
     start: u32,
@@ -780,7 +816,7 @@ pub fn traverse_with<B, L>(
     B: BoxTester<8>,
     L: FnMut(u32, u32, &mut f32) -> bool,
 {
-    traverse(nodes, tester, start, t_max, counters, leaf)
+    traverse::<8, ANY, _, _>(nodes, tester, start, t_max, counters, leaf)
 }
 
 /// [`query_subtree`] with a caller's tester and prepared watertight ray.
@@ -788,46 +824,56 @@ pub fn traverse_with<B, L>(
 #[inline(always)]
 pub fn subtree_with<const ANY: bool, B: BoxTester<8>>(
     nodes: &[WideNode<8>],
-    triangles: &[[Vec3; 3]],
+    blocks: &[Triangle4],
     tester: &B,
     wray: &WatertightRay,
     t_min: f32,
     start: u32,
     t_max: f32,
     counters: &mut TraversalCounters,
-) -> Option<(f32, f32, f32, u32)> {
-    let mut best: Option<(f32, f32, f32, u32)> = None;
-    traverse(
+) -> Option<LeafHit> {
+    let mut best: Option<LeafHit> = None;
+    traverse::<8, ANY, _, _>(
         nodes,
         tester,
         start,
         t_max,
         counters,
         |first, count, t_max| {
-            leaf_triangles::<ANY>(triangles, wray, t_min, first, count, t_max, &mut best)
+            intersect_blocks::<ANY>(
+                blocks,
+                wray,
+                t_min,
+                first,
+                count,
+                t_max,
+                &mut best,
+                B::SIMD_TRIANGLES,
+            )
         },
     );
     best
 }
 
 /// Closest (or, with `ANY`, some) hit within `[ray.t_min, t_max]` in the
-/// subtree of node `start` of an 8-wide tree over `triangles` (leaf order),
+/// subtree of node `start` of an 8-wide tree whose leaves name `blocks`,
 /// as (t, u, v, leaf-order slot), counting visited nodes. The caller has
 /// tested `start`'s box (a top-level leaf entering an object BVH).
 #[inline]
 pub fn query_subtree<const ANY: bool>(
     nodes: &[WideNode<8>],
-    triangles: &[[Vec3; 3]],
+    blocks: &[Triangle4],
     kernel: Kernel,
     start: u32,
     ray: &Ray,
     t_max: f32,
     counters: &mut TraversalCounters,
-) -> Option<(f32, f32, f32, u32)> {
+) -> Option<LeafHit> {
     let wray = WatertightRay::new(ray.origin, ray.dir);
     let t_min = ray.t_min;
-    let mut best: Option<(f32, f32, f32, u32)> = None;
-    traverse_wide(
+    let simd = kernel != Kernel::Scalar;
+    let mut best: Option<LeafHit> = None;
+    traverse_wide::<ANY, _>(
         nodes,
         kernel,
         start,
@@ -835,36 +881,8 @@ pub fn query_subtree<const ANY: bool>(
         t_max,
         counters,
         |first, count, t_max| {
-            leaf_triangles::<ANY>(triangles, &wray, t_min, first, count, t_max, &mut best)
+            intersect_blocks::<ANY>(blocks, &wray, t_min, first, count, t_max, &mut best, simd)
         },
     );
     best
-}
-
-/// Intersect the triangles of one wide leaf (the loop and tie rule of
-/// [`MeshBvh::intersect_leaf`]); returns `true` to stop (`ANY` and a hit).
-#[inline(always)]
-fn leaf_triangles<const ANY: bool>(
-    triangles: &[[Vec3; 3]],
-    wray: &WatertightRay,
-    t_min: f32,
-    first: u32,
-    count: u32,
-    t_max: &mut f32,
-    best: &mut Option<(f32, f32, f32, u32)>,
-) -> bool {
-    for k in first..first + count {
-        let [a, b, c] = triangles[k as usize];
-        if let Some((t, u, v)) = intersect_triangle(wray, a, b, c, t_min, *t_max) {
-            if ANY {
-                *best = Some((t, u, v, k));
-                return true;
-            }
-            if best.is_none_or(|h| t < h.0) {
-                *t_max = t;
-                *best = Some((t, u, v, k));
-            }
-        }
-    }
-    false
 }

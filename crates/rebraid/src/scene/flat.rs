@@ -6,7 +6,7 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::bvh::{BoxRay, BuildParams, Kernel, TraversalCounters, WideBvh, query_subtree};
+use crate::bvh::{BoxRay, BuildParams, Kernel, TraversalCounters, WideTriangleBvh, query_subtree};
 use crate::{Error, Hit, MeshBvh, Ray, TriangleMesh};
 
 /// Where a triangle of the flat BVH came from.
@@ -23,7 +23,7 @@ pub struct FlatAccel {
     pub bvh: MeshBvh,
     /// The 8-wide traversal layout collapsed from `bvh` (`None` when a leaf
     /// is too large for it: traversal stays binary then).
-    pub wide: Option<WideBvh<8>>,
+    pub wide: Option<WideTriangleBvh>,
     pub kernel: Kernel,
     /// Origin of each world triangle, by flat primitive id.
     pub origins: Vec<PrimOrigin>,
@@ -61,7 +61,7 @@ impl FlatAccel {
         }
         let mesh = TriangleMesh { positions, indices };
         let bvh = MeshBvh::build(&mesh, params)?;
-        let wide = WideBvh::from_bvh(&bvh.bvh).ok();
+        let wide = WideTriangleBvh::from_mesh(&bvh).ok();
         Ok(Self {
             bvh,
             wide,
@@ -80,7 +80,7 @@ impl FlatAccel {
 
     /// The wide tree when it exists and the ray enters the root box:
     /// `None` = no wide layout, `Some(None)` = the ray misses everything.
-    fn wide_entry(&self, ray: &Ray) -> Option<Option<&WideBvh<8>>> {
+    fn wide_entry(&self, ray: &Ray) -> Option<Option<&WideTriangleBvh>> {
         let wide = self.wide.as_ref()?;
         let root = self.bvh.bvh.nodes.first()?;
         let enters = ray.is_valid()
@@ -98,8 +98,8 @@ impl FlatAccel {
             Some(None) => None,
             Some(Some(w)) => {
                 let h = query_subtree::<false>(
-                    &w.nodes,
-                    &self.bvh.triangles,
+                    &w.wide.nodes,
+                    &w.blocks,
                     self.kernel,
                     0,
                     ray,
@@ -116,8 +116,8 @@ impl FlatAccel {
             None => self.bvh.occluded(ray),
             Some(None) => false,
             Some(Some(w)) => query_subtree::<true>(
-                &w.nodes,
-                &self.bvh.triangles,
+                &w.wide.nodes,
+                &w.blocks,
                 self.kernel,
                 0,
                 ray,

@@ -737,7 +737,9 @@ impl Scene {
             Accel::Flat(f) => {
                 let st = f.bvh.stats();
                 s.sah_cost = st.sah_cost;
-                s.bytes = st.bytes + std::mem::size_of_val(f.origins.as_slice());
+                s.bytes = st.bytes
+                    + std::mem::size_of_val(f.origins.as_slice())
+                    + f.wide.as_ref().map_or(0, |w| w.bytes());
                 s.flat = Some(st);
             }
             Accel::TopLevel(t) => {
@@ -747,10 +749,14 @@ impl Scene {
                     .iter()
                     .flatten()
                     .map(|o| {
-                        o.mesh.stats().bytes + std::mem::size_of_val(o.subtree_prims.as_slice())
+                        o.mesh.stats().bytes
+                            + std::mem::size_of_val(o.subtree_prims.as_slice())
+                            + std::mem::size_of_val(o.subtree_cost.as_slice())
+                            + std::mem::size_of_val(o.wide_of.as_slice())
+                            + o.wide.as_ref().map_or(0, |w| w.bytes())
                     })
                     .sum();
-                s.bytes = object_bytes + t.top_bytes();
+                s.bytes = object_bytes + t.top_bytes() + t.wide.as_ref().map_or(0, |w| w.bytes());
                 s.top_nodes = t.tree.nodes.len();
                 s.top_depth = t.tree.stats(SahCosts::default()).max_depth;
                 s.top = Some(t.build_stats.clone());

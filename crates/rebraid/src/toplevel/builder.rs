@@ -471,7 +471,7 @@ fn child_nodes(ctx: &Ctx, r: &BuildRef) -> ([u32; 8], usize) {
         .expect("validated");
     let mut ids = [0u32; 8];
     if let (Some(wide), Some(w)) = (&obj.wide, obj.wide_node(r.node)) {
-        let slots = &wide.slot_binary[w as usize];
+        let slots = &wide.wide.slot_binary[w as usize];
         let mut k = 0;
         for &b in slots.iter().take_while(|&&b| b != WIDE_EMPTY) {
             ids[k] = b;

@@ -15,11 +15,12 @@ use std::sync::Arc;
 use glam::Affine3A;
 use rayon::prelude::*;
 
-use crate::bvh::wide::WIDE_EMPTY;
+use crate::bvh::triangle4::intersect_blocks;
+use crate::bvh::wide::{WIDE_EMPTY, decode_leaf, is_leaf_ref};
 use crate::bvh::{
     BoxRay, BoxTester, Bvh, BvhNode, Kernel, SahCosts, TRAVERSAL_STACK, TesterFactory,
-    TraversalCounters, TraversalStack, WideBvh, WideQuery, subtree_with, traverse_with,
-    with_kernel,
+    TraversalCounters, TraversalStack, WideBvh, WideQuery, WideTriangleBvh, subtree_with,
+    traverse_with, with_kernel,
 };
 use crate::transform::{transform_box, transform_normal};
 use crate::triangle::WatertightRay;
@@ -38,10 +39,12 @@ pub struct ObjectBvh {
     /// node's box (traversal and intersection cost 1).
     pub subtree_cost: Vec<f32>,
     /// The 8-wide layout traversal uses, collapsed from `mesh.bvh` (which
-    /// stays the build, re-braiding and statistics structure); `None` when a
-    /// binary leaf is too large for it.
-    pub wide: Option<WideBvh<8>>,
-    /// For each binary node, the wide node collapsed from it, or `WIDE_EMPTY`.
+    /// stays the build, re-braiding and statistics structure), with
+    /// four-triangle leaf blocks; `None` when a binary leaf is too large for
+    /// it.
+    pub wide: Option<WideTriangleBvh>,
+    /// For each binary node, the wide node collapsed from it (inner nodes),
+    /// the wide leaf reference naming its blocks (leaves), or `WIDE_EMPTY`.
     pub wide_of: Vec<u32>,
 }
 
@@ -63,20 +66,30 @@ impl ObjectBvh {
     /// (Re)collapse the 8-wide traversal layout from the binary tree; none
     /// when a binary leaf is too large for it (traversal stays binary then).
     fn collapse_wide(&mut self) {
-        self.wide = WideBvh::<8>::from_bvh(&self.mesh.bvh).ok();
+        self.wide = WideTriangleBvh::from_mesh(&self.mesh).ok();
         self.wide_of = match &self.wide {
-            Some(w) => w.wide_of_binary(self.mesh.bvh.nodes.len()),
+            Some(w) => {
+                let mut map = w.wide.wide_of_binary(self.mesh.bvh.nodes.len());
+                for (node, slots) in w.wide.nodes.iter().zip(&w.wide.slot_binary) {
+                    for (&r, &b) in node.child.iter().zip(slots) {
+                        if r != WIDE_EMPTY && is_leaf_ref(r) {
+                            map[b as usize] = r;
+                        }
+                    }
+                }
+                map
+            }
             None => Vec::new(),
         };
     }
 
-    /// The wide node collapsed from binary node `node`, if any.
+    /// The wide node collapsed from binary inner node `node`, if any.
     #[inline(always)]
     pub fn wide_node(&self, node: u32) -> Option<u32> {
         self.wide_of
             .get(node as usize)
             .copied()
-            .filter(|&w| w != WIDE_EMPTY)
+            .filter(|&w| !is_leaf_ref(w))
     }
 
     /// Refit the object BVH to moved vertices (same triangles, see
@@ -128,8 +141,8 @@ impl ObjectBvh {
     /// (a top-level leaf), as (t, u, v, leaf-order slot). `ray` is in object
     /// space, `bray`, `wray` and `tester` its prepared forms. An inner node
     /// collapsed into the wide layout is traversed with the caller's SIMD
-    /// tester; anything else (a leaf, or an object without the wide layout)
-    /// with the binary scalar kernel.
+    /// tester, a leaf's triangle blocks are tested directly, and an object
+    /// without the wide layout runs the binary scalar kernel.
     #[allow(clippy::too_many_arguments)] // the hot path: plain values
     #[inline(always)]
     pub fn query_node<const ANY: bool, B: BoxTester<8>>(
@@ -144,17 +157,36 @@ impl ObjectBvh {
         counters: &mut TraversalCounters,
     ) -> Option<(f32, f32, f32, u32)> {
         let t_min = ray.t_min;
-        if let (Some(wide), Some(w)) = (&self.wide, self.wide_node(node)) {
-            return subtree_with::<ANY, B>(
-                &wide.nodes,
-                &self.mesh.triangles,
-                tester,
-                wray,
-                t_min,
-                w,
-                t_max,
-                counters,
-            );
+        if let (Some(wide), Some(&w)) = (&self.wide, self.wide_of.get(node as usize)) {
+            if !is_leaf_ref(w) {
+                return subtree_with::<ANY, B>(
+                    &wide.wide.nodes,
+                    &wide.blocks,
+                    tester,
+                    wray,
+                    t_min,
+                    w,
+                    t_max,
+                    counters,
+                );
+            }
+            if w != WIDE_EMPTY {
+                // A binary leaf: its blocks directly.
+                counters.leaves_visited += 1;
+                let (first, count) = decode_leaf(w);
+                let (mut t_max, mut best) = (t_max, None);
+                intersect_blocks::<ANY>(
+                    &wide.blocks,
+                    wray,
+                    t_min,
+                    first,
+                    count,
+                    &mut t_max,
+                    &mut best,
+                    B::SIMD_TRIANGLES,
+                );
+                return best;
+            }
         }
         let mut best = None;
         self.mesh
@@ -282,7 +314,7 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
         let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
         let mut inner = TraversalCounters::default();
         let mut best = None;
-        traverse_with(
+        traverse_with::<ANY, _, _>(
             &wide.nodes,
             &world,
             0,

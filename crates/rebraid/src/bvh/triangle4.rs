@@ -1,0 +1,560 @@
+//! Leaves of four triangles tested at once: the `Triangle4` layout.
+//!
+//! A wide leaf of `n` triangles is stored as `ceil(n / 4)` blocks, each
+//! holding the vertices of up to four triangles in SoA form (one 16-byte
+//! vector per vertex coordinate), as Embree's `Triangle4` does (I. Wald et
+//! al., "Embree: A Kernel Framework for Efficient CPU Ray Tracing", ACM TOG
+//! 33(4), 2014). One pass of SSE arithmetic then runs the watertight test
+//! (Woop, Benthin, Wald, JCGT 2013) on four triangles, where the scalar loop
+//! ran it four times. SSE2 is part of x86-64, so this kernel needs no run-time
+//! detection; the scalar lane loop stays as the reference and as the path of
+//! [`super::Kernel::Scalar`].
+//!
+//! The SIMD lanes compute exactly the scalar test's operations in the same
+//! order (separate multiplies and subtractions, never FMA; a true division
+//! for the reciprocal), so every lane's `(t, u, v)` is bit-identical to
+//! [`intersect_triangle`]'s. Lanes where an edge function rounds to exactly
+//! zero, which the scalar test recomputes in `f64`, are handed to the scalar
+//! test itself. Within a leaf the closest lane wins and equal distances keep
+//! the first lane, the scalar loop's rule, so the leaf answers are the same
+//! triangle, not only the same distance.
+//!
+//! Degenerate triangles (stored collapsed to one point by
+//! [`crate::MeshBvh`]) and the padding of a partial block have NaN vertices,
+//! which no lane ever hits; their slot stays recorded (padding:
+//! [`TRIANGLE4_NO_SLOT`]) so that the blocks still account for every
+//! triangle.
+//!
+//! The binary builder prices leaves by blocks when asked
+//! ([`super::BuildParams::leaf_block_size`]), as Embree's SAH does for its
+//! `Triangle4` leaves: up to four triangles cost one test.
+
+use glam::Vec3;
+
+use super::wide::{WIDE_EMPTY, WideBvh, decode_leaf, encode_leaf, is_leaf_ref};
+use crate::Aabb;
+use crate::triangle::{WatertightRay, intersect_triangle};
+
+/// Slot of a padding lane.
+pub const TRIANGLE4_NO_SLOT: u32 = u32::MAX;
+
+/// Up to four triangles in SoA form: `v[vertex][axis][lane]`, and the
+/// leaf-order slot of each lane's triangle.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C, align(16))]
+pub struct Triangle4 {
+    pub v: [[[f32; 4]; 3]; 3],
+    pub slot: [u32; 4],
+}
+
+const _: () = assert!(std::mem::size_of::<Triangle4>() == 160);
+const _: () = assert!(std::mem::align_of::<Triangle4>() == 16);
+
+/// A hit inside a leaf: (t, u, v, leaf-order slot).
+pub type LeafHit = (f32, f32, f32, u32);
+
+impl Triangle4 {
+    /// Four padding lanes.
+    pub const EMPTY: Self = Self {
+        v: [[[f32::NAN; 4]; 3]; 3],
+        slot: [TRIANGLE4_NO_SLOT; 4],
+    };
+
+    /// Put triangle `tri` (leaf-order slot `slot`) in lane `lane`; a
+    /// triangle collapsed to one point gets NaN vertices (never hit).
+    #[inline]
+    pub fn set(&mut self, lane: usize, slot: u32, tri: [Vec3; 3]) {
+        let collapsed = tri[0] == tri[1] && tri[1] == tri[2];
+        for (i, p) in tri.iter().enumerate() {
+            for axis in 0..3 {
+                self.v[i][axis][lane] = if collapsed { f32::NAN } else { p[axis] };
+            }
+        }
+        self.slot[lane] = slot;
+    }
+
+    /// Vertices of lane `lane`.
+    #[inline]
+    pub fn triangle(&self, lane: usize) -> [Vec3; 3] {
+        std::array::from_fn(|i| {
+            Vec3::new(self.v[i][0][lane], self.v[i][1][lane], self.v[i][2][lane])
+        })
+    }
+}
+
+/// Store the triangles of every leaf of `wide` as [`Triangle4`] blocks and
+/// rewrite each leaf reference to name its blocks (first block, block
+/// count) instead of its triangle slots. `triangles` are the leaf-order
+/// triangles the leaves index. Blocks follow the node array's order, so a
+/// node's leaves lie close together. Afterwards `wide.prim_count` is the
+/// number of blocks (what [`WideBvh::validate`] checks against, with
+/// [`block_boxes`]).
+pub fn pack_triangle4<const W: usize>(
+    wide: &mut WideBvh<W>,
+    triangles: &[[Vec3; 3]],
+) -> Vec<Triangle4> {
+    let mut blocks = Vec::with_capacity(triangles.len() / 2 + 1);
+    for node in &mut wide.nodes {
+        for r in &mut node.child {
+            if *r == WIDE_EMPTY || !is_leaf_ref(*r) {
+                continue;
+            }
+            let (first, count) = decode_leaf(*r);
+            let start = blocks.len() as u32;
+            let end = first + count;
+            for base in (first..end).step_by(4) {
+                let mut b = Triangle4::EMPTY;
+                for (lane, k) in (base..end.min(base + 4)).enumerate() {
+                    b.set(lane, k, triangles[k as usize]);
+                }
+                blocks.push(b);
+            }
+            *r = encode_leaf(start, blocks.len() as u32 - start);
+        }
+    }
+    wide.prim_count = blocks.len();
+    blocks
+}
+
+/// Box of each block: the union of its triangles' boxes, taken from the
+/// leaf-order `triangles` by slot (so degenerate lanes count too).
+pub fn block_boxes(blocks: &[Triangle4], triangles: &[[Vec3; 3]]) -> Vec<Aabb> {
+    blocks
+        .iter()
+        .map(|b| {
+            b.slot
+                .iter()
+                .filter(|&&s| s != TRIANGLE4_NO_SLOT)
+                .fold(Aabb::EMPTY, |acc, &s| {
+                    acc.union(Aabb::from_points(&triangles[s as usize]))
+                })
+        })
+        .collect()
+}
+
+/// Check that the blocks hold exactly the leaf-order triangles, each once,
+/// in its recorded slot (collapsed ones as NaN).
+pub fn validate_blocks(blocks: &[Triangle4], triangles: &[[Vec3; 3]]) -> Result<(), String> {
+    let mut seen = vec![false; triangles.len()];
+    for (i, b) in blocks.iter().enumerate() {
+        for lane in 0..4 {
+            let s = b.slot[lane];
+            if s == TRIANGLE4_NO_SLOT {
+                continue;
+            }
+            let Some(tri) = triangles.get(s as usize) else {
+                return Err(format!("block {i} lane {lane}: slot {s} out of range"));
+            };
+            if std::mem::replace(&mut seen[s as usize], true) {
+                return Err(format!("slot {s} in two blocks"));
+            }
+            let mut expect = Triangle4::EMPTY;
+            expect.set(lane, s, *tri);
+            let (got, want) = (b.triangle(lane), expect.triangle(lane));
+            let same = got
+                .iter()
+                .zip(&want)
+                .all(|(g, w)| g.to_array().map(f32::to_bits) == w.to_array().map(f32::to_bits));
+            if !same {
+                return Err(format!(
+                    "block {i} lane {lane}: vertices differ from slot {s}"
+                ));
+            }
+        }
+    }
+    match seen.iter().position(|s| !s) {
+        Some(s) => Err(format!("slot {s} in no block")),
+        None => Ok(()),
+    }
+}
+
+/// Intersect the blocks `first .. first + count` (one wide leaf): shrinks
+/// `t_max` and records the closest hit in `best` (equal distances keep the
+/// earlier triangle, also against a `best` from an earlier leaf), or with
+/// `ANY` records some hit and returns `true` (stop). `simd` selects the SSE
+/// lanes (x86-64) over the scalar loop; both give the same answers.
+#[allow(clippy::too_many_arguments)] // the hot path: plain values
+#[inline(always)]
+pub fn intersect_blocks<const ANY: bool>(
+    blocks: &[Triangle4],
+    wray: &WatertightRay,
+    t_min: f32,
+    first: u32,
+    count: u32,
+    t_max: &mut f32,
+    best: &mut Option<LeafHit>,
+    simd: bool,
+) -> bool {
+    for b in &blocks[first as usize..(first + count) as usize] {
+        #[cfg(target_arch = "x86_64")]
+        if simd {
+            // SAFETY: SSE2 is part of the x86-64 baseline.
+            let lanes = unsafe { x86::lanes(b, wray, t_min, *t_max) };
+            if take_lanes::<ANY>(b, lanes, wray, t_min, t_max, best) {
+                return true;
+            }
+            continue;
+        }
+        let _ = simd;
+        if scalar_block::<ANY>(b, wray, t_min, t_max, best) {
+            return true;
+        }
+    }
+    false
+}
+
+/// The reference: the scalar watertight test lane by lane, in lane order.
+#[inline(always)]
+fn scalar_block<const ANY: bool>(
+    b: &Triangle4,
+    wray: &WatertightRay,
+    t_min: f32,
+    t_max: &mut f32,
+    best: &mut Option<LeafHit>,
+) -> bool {
+    for lane in 0..4 {
+        let slot = b.slot[lane];
+        if slot == TRIANGLE4_NO_SLOT {
+            break;
+        }
+        let [p0, p1, p2] = b.triangle(lane);
+        if let Some((t, u, v)) = intersect_triangle(wray, p0, p1, p2, t_min, *t_max) {
+            if ANY {
+                *best = Some((t, u, v, slot));
+                return true;
+            }
+            if best.is_none_or(|h| t < h.0) {
+                *t_max = t;
+                *best = Some((t, u, v, slot));
+            }
+        }
+    }
+    false
+}
+
+/// Lane results of one block: hit mask, lanes the scalar test must decide,
+/// and each lane's t, u, v.
+#[cfg(target_arch = "x86_64")]
+type Lanes = (u32, u32, [f32; 4], [f32; 4], [f32; 4]);
+
+/// Fold a block's lane results into the leaf's answer, lanes in order (the
+/// scalar loop's order and tie rule).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn take_lanes<const ANY: bool>(
+    b: &Triangle4,
+    (hits, scalar, t, u, v): Lanes,
+    wray: &WatertightRay,
+    t_min: f32,
+    t_max: &mut f32,
+    best: &mut Option<LeafHit>,
+) -> bool {
+    let mut todo = hits | scalar;
+    while todo != 0 {
+        let lane = todo.trailing_zeros() as usize;
+        todo &= todo - 1;
+        let hit = if scalar & (1 << lane) != 0 {
+            // Rare: an edge function was exactly zero; the scalar test
+            // redoes it in f64. `t_max` here may already be shrunk by an
+            // earlier lane, which only rejects hits the rule below would.
+            let [p0, p1, p2] = b.triangle(lane);
+            intersect_triangle(wray, p0, p1, p2, t_min, *t_max)
+        } else {
+            Some((t[lane], u[lane], v[lane]))
+        };
+        let Some((t, u, v)) = hit else { continue };
+        let slot = b.slot[lane];
+        if ANY {
+            *best = Some((t, u, v, slot));
+            return true;
+        }
+        if best.is_none_or(|h| t < h.0) {
+            *t_max = t;
+            *best = Some((t, u, v, slot));
+        }
+    }
+    false
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    #[cfg(target_arch = "x86_64")]
+    use std::arch::x86_64::*;
+
+    use super::{Lanes, Triangle4};
+    use crate::triangle::WatertightRay;
+
+    /// The watertight test on the four lanes of `b` (see the module docs):
+    /// the lanes hit within `[t_min, t_max]`, the lanes whose edge functions
+    /// need the scalar `f64` recomputation, and every lane's t, u, v.
+    ///
+    /// # Safety
+    /// SSE2 only, which every x86-64 CPU has.
+    #[inline(always)]
+    pub(super) unsafe fn lanes(b: &Triangle4, r: &WatertightRay, t_min: f32, t_max: f32) -> Lanes {
+        // SAFETY: plain SSE2 arithmetic; each load reads one aligned
+        // `[f32; 4]` of the block (`Triangle4` is 16-byte aligned and its
+        // rows are 16 bytes), each store writes one `[f32; 4]`.
+        unsafe {
+            let (kx, ky, kz) = (r.kx, r.ky, r.kz);
+            let o = [
+                _mm_set1_ps(r.origin[kx]),
+                _mm_set1_ps(r.origin[ky]),
+                _mm_set1_ps(r.origin[kz]),
+            ];
+            let (sx, sy, sz) = (_mm_set1_ps(r.sx), _mm_set1_ps(r.sy), _mm_set1_ps(r.sz));
+            // Vertex `i` relative to the origin, sheared: (x, y, z) with z
+            // not yet scaled, as `intersect_triangle` computes them.
+            let vertex = |i: usize| {
+                let x = _mm_sub_ps(_mm_load_ps(b.v[i][kx].as_ptr()), o[0]);
+                let y = _mm_sub_ps(_mm_load_ps(b.v[i][ky].as_ptr()), o[1]);
+                let z = _mm_sub_ps(_mm_load_ps(b.v[i][kz].as_ptr()), o[2]);
+                (
+                    _mm_sub_ps(x, _mm_mul_ps(sx, z)),
+                    _mm_sub_ps(y, _mm_mul_ps(sy, z)),
+                    z,
+                )
+            };
+            let (ax, ay, az) = vertex(0);
+            let (bx, by, bz) = vertex(1);
+            let (cx, cy, cz) = vertex(2);
+            let u = _mm_sub_ps(_mm_mul_ps(cx, by), _mm_mul_ps(cy, bx));
+            let v = _mm_sub_ps(_mm_mul_ps(ax, cy), _mm_mul_ps(ay, cx));
+            let w = _mm_sub_ps(_mm_mul_ps(bx, ay), _mm_mul_ps(by, ax));
+            let zero = _mm_setzero_ps();
+            let scalar = _mm_or_ps(
+                _mm_cmpeq_ps(u, zero),
+                _mm_or_ps(_mm_cmpeq_ps(v, zero), _mm_cmpeq_ps(w, zero)),
+            );
+            let neg = _mm_or_ps(
+                _mm_cmplt_ps(u, zero),
+                _mm_or_ps(_mm_cmplt_ps(v, zero), _mm_cmplt_ps(w, zero)),
+            );
+            let pos = _mm_or_ps(
+                _mm_cmpgt_ps(u, zero),
+                _mm_or_ps(_mm_cmpgt_ps(v, zero), _mm_cmpgt_ps(w, zero)),
+            );
+            let det = _mm_add_ps(_mm_add_ps(u, v), w);
+            let t_scaled = _mm_add_ps(
+                _mm_add_ps(
+                    _mm_mul_ps(u, _mm_mul_ps(sz, az)),
+                    _mm_mul_ps(v, _mm_mul_ps(sz, bz)),
+                ),
+                _mm_mul_ps(w, _mm_mul_ps(sz, cz)),
+            );
+            let rcp = _mm_div_ps(_mm_set1_ps(1.0), det);
+            let t = _mm_mul_ps(t_scaled, rcp);
+            // Ordered compares: a NaN t (padding, det = 0) fails them.
+            let in_range = _mm_and_ps(
+                _mm_cmpge_ps(t, _mm_set1_ps(t_min)),
+                _mm_cmple_ps(t, _mm_set1_ps(t_max)),
+            );
+            let ok = _mm_andnot_ps(
+                _mm_or_ps(_mm_and_ps(neg, pos), scalar),
+                _mm_and_ps(_mm_cmpneq_ps(det, zero), in_range),
+            );
+            let hits = _mm_movemask_ps(ok) as u32;
+            let scalar = _mm_movemask_ps(scalar) as u32;
+            let mut out_t = [0.0f32; 4];
+            let mut out_u = [0.0f32; 4];
+            let mut out_v = [0.0f32; 4];
+            if hits != 0 {
+                _mm_storeu_ps(out_t.as_mut_ptr(), t);
+                _mm_storeu_ps(out_u.as_mut_ptr(), _mm_mul_ps(v, rcp));
+                _mm_storeu_ps(out_v.as_mut_ptr(), _mm_mul_ps(w, rcp));
+            }
+            (hits, scalar, out_t, out_u, out_v)
+        }
+    }
+}
+
+/// An 8-wide tree over a [`crate::MeshBvh`]'s leaf-order triangles whose
+/// leaves are [`Triangle4`] blocks: the traversal layout of the flat BVH and
+/// of every object BVH (the binary `MeshBvh` stays the build, re-braiding
+/// and reference structure).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct WideTriangleBvh {
+    pub wide: WideBvh<8>,
+    pub blocks: Vec<Triangle4>,
+}
+
+impl WideTriangleBvh {
+    /// Collapse the mesh's binary tree and pack its leaves; fails when a
+    /// binary leaf is too large for the wide layout.
+    pub fn from_mesh(mesh: &crate::MeshBvh) -> Result<Self, crate::Error> {
+        let mut wide = WideBvh::from_bvh(&mesh.bvh)?;
+        let blocks = pack_triangle4(&mut wide, &mesh.triangles);
+        Ok(Self { wide, blocks })
+    }
+
+    /// Bytes of the nodes, maps and blocks.
+    pub fn bytes(&self) -> usize {
+        self.wide.bytes() + std::mem::size_of_val(self.blocks.as_slice())
+    }
+
+    /// Check the blocks against the leaf-order `triangles` and the tree
+    /// against the blocks' boxes.
+    pub fn validate(&self, triangles: &[[Vec3; 3]]) -> Result<(), String> {
+        validate_blocks(&self.blocks, triangles)?;
+        self.wide.validate(&block_boxes(&self.blocks, triangles))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use rand::{Rng, SeedableRng};
+    use rand_pcg::Pcg64;
+
+    use super::*;
+    use crate::bvh::{BuildParams, WideBvh};
+    use crate::{MeshBvh, TriangleMesh};
+
+    /// Blocks of random triangles whose vertices sit on a coarse integer
+    /// lattice, and rays through lattice points: many rays pass exactly
+    /// through vertices and edges, where edge functions are exactly zero
+    /// and the scalar `f64` path must take over.
+    fn lattice_case(rng: &mut Pcg64) -> (Vec<Triangle4>, Vec<[Vec3; 3]>) {
+        let p = |rng: &mut Pcg64| {
+            Vec3::new(
+                rng.gen_range(-3..=3) as f32,
+                rng.gen_range(-3..=3) as f32,
+                rng.gen_range(-3..=3) as f32,
+            )
+        };
+        let n = rng.gen_range(1..=8);
+        let mut tris: Vec<[Vec3; 3]> = (0..n).map(|_| [p(rng), p(rng), p(rng)]).collect();
+        // Some collapsed (as MeshBvh stores degenerate triangles).
+        if rng.gen_bool(0.2) {
+            let a = tris[0][0];
+            tris[0] = [a, a, a];
+        }
+        let mut blocks = Vec::new();
+        for (bi, chunk) in tris.chunks(4).enumerate() {
+            let mut b = Triangle4::EMPTY;
+            for (lane, t) in chunk.iter().enumerate() {
+                b.set(lane, (bi * 4 + lane) as u32, *t);
+            }
+            blocks.push(b);
+        }
+        (blocks, tris)
+    }
+
+    fn bits(h: Option<LeafHit>) -> Option<[u32; 4]> {
+        h.map(|(t, u, v, k)| [t.to_bits(), u.to_bits(), v.to_bits(), k])
+    }
+
+    #[test]
+    fn simd_lanes_match_the_scalar_loop_bit_for_bit() {
+        let mut rng = Pcg64::seed_from_u64(7);
+        let mut fallbacks_hit = 0;
+        for _ in 0..20_000 {
+            let (blocks, tris) = lattice_case(&mut rng);
+            let o = Vec3::new(
+                rng.gen_range(-4..=4) as f32,
+                rng.gen_range(-4..=4) as f32,
+                4.5,
+            );
+            let target = if rng.gen_bool(0.5) {
+                tris[rng.gen_range(0..tris.len())][rng.gen_range(0..3)]
+            } else {
+                Vec3::new(
+                    rng.gen_range(-3.0..3.0),
+                    rng.gen_range(-3.0..3.0),
+                    rng.gen_range(-3.0..3.0),
+                )
+            };
+            let dir = target - o;
+            if dir == Vec3::ZERO {
+                continue;
+            }
+            let wray = WatertightRay::new(o, dir);
+            let t_max = if rng.gen_bool(0.3) {
+                rng.gen_range(0.2..1.5)
+            } else {
+                f32::INFINITY
+            };
+            let prior = rng
+                .gen_bool(0.2)
+                .then(|| (rng.gen_range(0.5..2.0), 0.0, 0.0, 99));
+            let count = blocks.len() as u32;
+            let run = |any: bool, simd: bool| {
+                let mut tm = prior.map_or(t_max, |p: LeafHit| p.0.min(t_max));
+                let mut best = prior;
+                let stop = if any {
+                    intersect_blocks::<true>(
+                        &blocks, &wray, 0.0, 0, count, &mut tm, &mut best, simd,
+                    )
+                } else {
+                    intersect_blocks::<false>(
+                        &blocks, &wray, 0.0, 0, count, &mut tm, &mut best, simd,
+                    )
+                };
+                (stop, tm.to_bits(), bits(best))
+            };
+            assert_eq!(run(false, true), run(false, false));
+            assert_eq!(run(true, true), run(true, false));
+            // The plain per-triangle loop agrees too.
+            let mut best: Option<LeafHit> = prior;
+            let mut tm = prior.map_or(t_max, |p| p.0.min(t_max));
+            for (k, [a, b, c]) in tris.iter().enumerate() {
+                let (a, b, c) = if a == b && b == c {
+                    continue;
+                } else {
+                    (*a, *b, *c)
+                };
+                if let Some((t, u, v)) = intersect_triangle(&wray, a, b, c, 0.0, tm)
+                    && best.is_none_or(|h| t < h.0)
+                {
+                    tm = t;
+                    best = Some((t, u, v, k as u32));
+                }
+            }
+            assert_eq!(run(false, true).2, bits(best));
+            #[cfg(target_arch = "x86_64")]
+            for b in &blocks {
+                // SAFETY: SSE2 is part of x86-64.
+                let (_, scalar, ..) = unsafe { x86::lanes(b, &wray, 0.0, f32::INFINITY) };
+                fallbacks_hit += (scalar != 0) as u32;
+            }
+        }
+        #[cfg(target_arch = "x86_64")]
+        assert!(
+            fallbacks_hit > 100,
+            "the f64 fallback lanes were exercised {fallbacks_hit} times"
+        );
+    }
+
+    #[test]
+    fn packing_covers_every_triangle_once_and_validation_catches_damage() {
+        let mut rng = Pcg64::seed_from_u64(3);
+        let mut positions = Vec::new();
+        let mut indices = Vec::new();
+        for i in 0..500u32 {
+            let c = Vec3::new(
+                rng.gen_range(0.0..10.0),
+                rng.gen_range(0.0..10.0),
+                rng.gen_range(0.0..10.0),
+            );
+            positions.extend([c, c + Vec3::X * 0.3, c + Vec3::Y * 0.3]);
+            indices.push([3 * i, 3 * i + 1, 3 * i + 2]);
+        }
+        let mesh = TriangleMesh { positions, indices };
+        let bvh = MeshBvh::build(&mesh, &BuildParams::default()).unwrap();
+        let w = WideTriangleBvh::from_mesh(&bvh).unwrap();
+        w.validate(&bvh.triangles).unwrap();
+        assert_eq!(w.wide.prim_count, w.blocks.len());
+        // Leaves of up to 8 triangles: at most two blocks each, and no more
+        // blocks than leaves * 2.
+        let leaves = w.wide.stats().leaves;
+        assert!(w.blocks.len() >= leaves && w.blocks.len() <= 2 * leaves);
+        let mut bad = w.clone();
+        bad.blocks[0].v[0][0][0] += 1.0;
+        assert!(bad.validate(&bvh.triangles).is_err());
+        let mut bad = w.clone();
+        bad.blocks[0].slot[0] = bad.blocks[1].slot[0];
+        assert!(bad.validate(&bvh.triangles).is_err());
+        // An empty tree packs to nothing.
+        let mut empty = WideBvh::<8>::default();
+        assert!(pack_triangle4(&mut empty, &[]).is_empty());
+    }
+}
