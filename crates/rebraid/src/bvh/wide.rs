@@ -122,7 +122,7 @@ impl<const W: usize> WideNode<W> {
         self.child.iter().take_while(|&&c| c != WIDE_EMPTY).count()
     }
 
-    fn set_child(&mut self, i: usize, b: &Aabb, r: u32) {
+    pub(crate) fn set_child(&mut self, i: usize, b: &Aabb, r: u32) {
         self.min_x[i] = b.min.x;
         self.min_y[i] = b.min.y;
         self.min_z[i] = b.min.z;

@@ -320,6 +320,7 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
             0,
             ray.t_max,
             self.counters,
+            #[inline(always)]
             |first, count, t_max| {
                 for ri in first..first + count {
                     let r = &a.refs[ri as usize];
