@@ -93,8 +93,9 @@ pub fn pack_triangle4<const W: usize>(
     wide: &mut WideBvh<W>,
     triangles: &[[Vec3; 3]],
 ) -> Vec<Triangle4> {
-    // Pass 1 (nodes only): give each leaf its blocks and rewrite its ref.
-    let mut leaves: Vec<(u32, u32)> = Vec::new();
+    // Pass 1 (nodes only): give each leaf its blocks, rewrite its ref, and
+    // note each block's triangle range (first slot, count).
+    let mut sources: Vec<(u32, u32)> = Vec::with_capacity(triangles.len() / 2 + 1);
     let mut next = 0u32;
     for node in &mut wide.nodes {
         for r in &mut node.child {
@@ -102,33 +103,28 @@ pub fn pack_triangle4<const W: usize>(
                 continue;
             }
             let (first, count) = decode_leaf(*r);
+            let end = first + count;
+            sources.extend((first..end).step_by(4).map(|b| (b, (end - b).min(4))));
             let n = count.div_ceil(4);
-            leaves.push((first, count));
             *r = encode_leaf(next, n);
             next += n;
         }
     }
-    // Pass 2: fill the blocks, in parallel for long inputs (the order, and
-    // so the result, does not depend on the thread count).
-    let blocks_of = |&(first, count): &(u32, u32)| {
-        let end = first + count;
-        (first..end).step_by(4).map(move |base| {
-            let mut b = Triangle4::EMPTY;
-            for (lane, k) in (base..end.min(base + 4)).enumerate() {
-                b.set(lane, k, triangles[k as usize]);
-            }
-            b
-        })
+    // Pass 2: fill the blocks, one exact-size collect (in parallel for long
+    // inputs; the result does not depend on the thread count).
+    let block = |&(first, count): &(u32, u32)| {
+        let mut b = Triangle4::EMPTY;
+        for lane in 0..count {
+            let k = first + lane;
+            b.set(lane as usize, k, triangles[k as usize]);
+        }
+        b
     };
     let blocks: Vec<Triangle4> = if triangles.len() >= 1 << 15 {
         use rayon::prelude::*;
-        leaves
-            .par_iter()
-            .with_min_len(1024)
-            .flat_map_iter(blocks_of)
-            .collect()
+        sources.par_iter().with_min_len(4096).map(block).collect()
     } else {
-        leaves.iter().flat_map(blocks_of).collect()
+        sources.iter().map(block).collect()
     };
     debug_assert_eq!(blocks.len(), next as usize);
     wide.prim_count = blocks.len();
