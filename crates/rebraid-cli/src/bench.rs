@@ -293,6 +293,46 @@ pub fn format_answers(rows: &[BenchRow]) -> String {
     s
 }
 
+/// Ratios of `mode` against each baseline (Mrays/s of ours over theirs, and
+/// build time of theirs over ours, so above 1.0 means ours is ahead), per
+/// scene and thread count, from rows of one run: the figure issue 6 asks
+/// for. Empty when no row of `mode` has a baseline beside it.
+pub fn format_ratios(rows: &[BenchRow], mode: &str, baselines: &[&str]) -> String {
+    let mut s = String::new();
+    for base in baselines {
+        let mut lines = Vec::new();
+        for ours in rows.iter().filter(|r| r.mode == mode) {
+            let Some(theirs) = rows
+                .iter()
+                .find(|r| r.mode == *base && r.scene == ours.scene && r.threads == ours.threads)
+            else {
+                continue;
+            };
+            let q = |a: f64, b: f64| if b > 0.0 { a / b } else { f64::NAN };
+            lines.push(format!(
+                "  {:<24} {:>3} {:>8.2} {:>8.2} {:>8.2} {:>8.2}\n",
+                ours.scene,
+                ours.threads,
+                q(ours.primary.mrays_per_s, theirs.primary.mrays_per_s),
+                q(ours.shadow.mrays_per_s, theirs.shadow.mrays_per_s),
+                q(ours.diffuse.mrays_per_s, theirs.diffuse.mrays_per_s),
+                q(theirs.build_ms_total, ours.build_ms_total),
+            ));
+        }
+        if lines.is_empty() {
+            continue;
+        }
+        s.push_str(&format!(
+            "{mode} / {base} (above 1.0: {mode} ahead; build: their time over ours):\n  {:<24} {:>3} {:>8} {:>8} {:>8} {:>8}\n",
+            "scene", "thr", "primary", "shadow", "diffuse", "build"
+        ));
+        for l in lines {
+            s.push_str(&l);
+        }
+    }
+    s
+}
+
 /// Load a ray file written by [`write_rays`].
 pub fn read_rays(path: &std::path::Path) -> anyhow::Result<RaySets> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
@@ -346,5 +386,45 @@ mod tests {
         assert_eq!(back.primary, sets.primary);
         assert_eq!(back.diffuse, sets.diffuse);
         assert!(back.shadow.is_empty());
+    }
+
+    #[test]
+    fn ratios_pair_rows_of_the_same_scene_and_threads() {
+        let row = |scene: &str, mode: &str, threads, p, sh, d, build| BenchRow {
+            scene: scene.into(),
+            mode: mode.into(),
+            threads,
+            build_ms_total: build,
+            primary: RaySetResult {
+                mrays_per_s: p,
+                ..Default::default()
+            },
+            shadow: RaySetResult {
+                mrays_per_s: sh,
+                ..Default::default()
+            },
+            diffuse: RaySetResult {
+                mrays_per_s: d,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let rows = vec![
+            row("a", "rebraided", 1, 10.0, 6.0, 3.0, 20.0),
+            row("a", "rebraided", 2, 20.0, 12.0, 6.0, 10.0),
+            row("a", "embree-two-level", 1, 5.0, 12.0, 3.0, 10.0),
+            row("b", "rebraided", 1, 1.0, 1.0, 1.0, 1.0),
+        ];
+        let s = format_ratios(&rows, "rebraided", &["embree-two-level", "embree-flat"]);
+        assert!(s.contains("rebraided / embree-two-level"), "{s}");
+        assert!(!s.contains("embree-flat"), "no flat rows: {s}");
+        let line = s
+            .lines()
+            .find(|l| l.trim_start().starts_with("a "))
+            .unwrap();
+        let cols: Vec<&str> = line.split_whitespace().collect();
+        assert_eq!(cols, ["a", "1", "2.00", "0.50", "1.00", "0.50"]);
+        assert_eq!(s.lines().count(), 3, "{s}");
+        assert!(format_ratios(&rows, "flat", &["embree-flat"]).is_empty());
     }
 }

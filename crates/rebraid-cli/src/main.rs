@@ -495,6 +495,11 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
     }
     println!();
     print!("{}", bench::format_answers(&rows));
+    let ratios = bench::format_ratios(&rows, "rebraided", &["embree-two-level", "embree-flat"]);
+    if !ratios.is_empty() {
+        println!();
+        print!("{ratios}");
+    }
     if let Some(p) = &a.json {
         let mut s = String::new();
         for r in &rows {
