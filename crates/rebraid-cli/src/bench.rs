@@ -333,6 +333,28 @@ pub fn format_ratios(rows: &[BenchRow], mode: &str, baselines: &[&str]) -> Strin
     s
 }
 
+/// Empty the ray sets not named in `names` (comma-separated `primary`,
+/// `shadow`, `diffuse`), so that a run traces only the named ones.
+pub fn keep_sets(sets: &mut RaySets, names: &str) -> anyhow::Result<()> {
+    let names: Vec<&str> = names.split(',').map(str::trim).collect();
+    if let Some(bad) = names
+        .iter()
+        .find(|n| !["primary", "shadow", "diffuse"].contains(n))
+    {
+        anyhow::bail!("unknown ray set `{bad}` (expected primary, shadow or diffuse)");
+    }
+    for (name, v) in [
+        ("primary", &mut sets.primary),
+        ("shadow", &mut sets.shadow),
+        ("diffuse", &mut sets.diffuse),
+    ] {
+        if !names.contains(&name) {
+            v.clear();
+        }
+    }
+    Ok(())
+}
+
 /// Load a ray file written by [`write_rays`].
 pub fn read_rays(path: &std::path::Path) -> anyhow::Result<RaySets> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
@@ -426,5 +448,21 @@ mod tests {
         assert_eq!(cols, ["a", "1", "2.00", "0.50", "1.00", "0.50"]);
         assert_eq!(s.lines().count(), 3, "{s}");
         assert!(format_ratios(&rows, "flat", &["embree-flat"]).is_empty());
+    }
+
+    #[test]
+    fn keep_sets_empties_the_others_and_rejects_unknown_names() {
+        let r = Ray::infinite(Vec3::ZERO, Vec3::X);
+        let mut sets = RaySets {
+            primary: vec![r; 2],
+            shadow: vec![r; 3],
+            diffuse: vec![r; 4],
+        };
+        keep_sets(&mut sets, "shadow").unwrap();
+        assert_eq!(
+            (sets.primary.len(), sets.shadow.len(), sets.diffuse.len()),
+            (0, 3, 0)
+        );
+        assert!(keep_sets(&mut sets, "shadow,bounce").is_err());
     }
 }

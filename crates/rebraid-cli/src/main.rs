@@ -239,6 +239,10 @@ struct BenchArgs {
     /// Add Embree 3 rows (embree-flat, embree-two-level), each traced in its own process.
     #[arg(long)]
     embree: bool,
+    /// Ray sets to trace, comma-separated (the others are generated but
+    /// not traced and report 0): for profiling one workload.
+    #[arg(long, default_value = "primary,shadow,diffuse")]
+    sets: String,
     #[command(flatten)]
     opts: SceneOpts,
 }
@@ -474,7 +478,8 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
             camera.to_arg()
         );
         let params = a.opts.scene_params(modes[0])?;
-        let sets = bench::make_ray_sets(&desc, &params, &camera, up, a.width, a.height)?;
+        let mut sets = bench::make_ray_sets(&desc, &params, &camera, up, a.width, a.height)?;
+        bench::keep_sets(&mut sets, &a.sets)?;
         let cfg = BenchConfig {
             modes: modes.clone(),
             threads: threads.clone(),

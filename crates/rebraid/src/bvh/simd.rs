@@ -378,8 +378,8 @@ fn traverse<const W: usize, const ANY: bool, B, L>(
                     // any-hit traversal does) and go to the first slot.
                     let first = node.child[i];
                     while mask != 0 {
-                        let j = mask.trailing_zeros() as usize;
-                        mask &= mask - 1;
+                        let j = 31 - mask.leading_zeros() as usize;
+                        mask &= !(1 << j);
                         stack[sp].write((node.child[j], dist[j]));
                         sp += 1;
                     }
