@@ -341,14 +341,23 @@ mod x86 {
                 _mm_cmpeq_ps(u, zero),
                 _mm_or_ps(_mm_cmpeq_ps(v, zero), _mm_cmpeq_ps(w, zero)),
             );
-            let neg = _mm_or_ps(
-                _mm_cmplt_ps(u, zero),
-                _mm_or_ps(_mm_cmplt_ps(v, zero), _mm_cmplt_ps(w, zero)),
-            );
-            let pos = _mm_or_ps(
-                _mm_cmpgt_ps(u, zero),
-                _mm_or_ps(_mm_cmpgt_ps(v, zero), _mm_cmpgt_ps(w, zero)),
-            );
+            // Some edge function negative and some positive: the ray
+            // passes outside. Min and max give the same answer as the
+            // scalar test's six compares for every lane that is not NaN,
+            // and NaN lanes end with a NaN `t`, rejected either way.
+            let neg = _mm_cmplt_ps(_mm_min_ps(u, _mm_min_ps(v, w)), zero);
+            let pos = _mm_cmpgt_ps(_mm_max_ps(u, _mm_max_ps(v, w)), zero);
+            let outside = _mm_and_ps(neg, pos);
+            // Most tested triangles are missed here: skip the distance and
+            // its division unless some lane is still a candidate or needs
+            // the scalar test.
+            let open = _mm_movemask_ps(_mm_or_ps(
+                _mm_andnot_ps(outside, _mm_cmpeq_ps(zero, zero)),
+                scalar,
+            ));
+            if open == 0 {
+                return (0, 0, [0.0; 4], [0.0; 4], [0.0; 4]);
+            }
             let det = _mm_add_ps(_mm_add_ps(u, v), w);
             let t_scaled = _mm_add_ps(
                 _mm_add_ps(
@@ -365,7 +374,7 @@ mod x86 {
                 _mm_cmple_ps(t, _mm_set1_ps(t_max)),
             );
             let ok = _mm_andnot_ps(
-                _mm_or_ps(_mm_and_ps(neg, pos), scalar),
+                _mm_or_ps(outside, scalar),
                 _mm_and_ps(_mm_cmpneq_ps(det, zero), in_range),
             );
             let hits = _mm_movemask_ps(ok) as u32;
