@@ -373,9 +373,10 @@ fn traverse<const W: usize, const ANY: bool, B, L>(
                     continue;
                 }
                 if ANY {
-                    // Occlusion: any hit ends the query, so order buys
-                    // little; push the other hits unsorted (as Embree's
-                    // any-hit traversal does) and go to the first slot.
+                    // Occlusion: any hit ends the query, so sorting does
+                    // not pay (measured, see docs/performance.md): visit
+                    // the hit children in slot order, the first now and
+                    // the others pushed so that they pop in ascending order.
                     let first = node.child[i];
                     while mask != 0 {
                         let j = 31 - mask.leading_zeros() as usize;
