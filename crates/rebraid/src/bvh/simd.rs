@@ -660,7 +660,25 @@ fn run_on<const W: usize, const ANY: bool, B: BoxTester<W>>(
     counters: &mut TraversalCounters,
 ) -> Option<LeafHit> {
     let wray = WatertightRay::new(ray.origin, ray.dir);
-    let t_min = ray.t_min;
+    subtree_with::<W, ANY, B>(
+        nodes, blocks, tester, &wray, ray.t_min, start, t_max, counters,
+    )
+}
+
+/// [`query_subtree`] with a caller's tester and prepared watertight ray,
+/// for any width: the one leaf loop of every wide query over triangles.
+#[allow(clippy::too_many_arguments)] // the hot path: plain values
+#[inline(always)]
+pub fn subtree_with<const W: usize, const ANY: bool, B: BoxTester<W>>(
+    nodes: &[WideNode<W>],
+    blocks: &[Triangle4],
+    tester: &B,
+    wray: &WatertightRay,
+    t_min: f32,
+    start: u32,
+    t_max: f32,
+    counters: &mut TraversalCounters,
+) -> Option<LeafHit> {
     let mut best: Option<LeafHit> = None;
     traverse::<W, ANY, _, _>(
         nodes,
@@ -672,7 +690,7 @@ fn run_on<const W: usize, const ANY: bool, B: BoxTester<W>>(
         |first, count, t_max| {
             intersect_blocks::<ANY>(
                 blocks,
-                &wray,
+                wray,
                 t_min,
                 first,
                 count,
@@ -854,43 +872,6 @@ pub fn traverse_with<const ANY: bool, B, L>(
     L: FnMut(u32, u32, &mut f32) -> bool,
 {
     traverse::<8, ANY, _, _>(nodes, tester, start, t_max, counters, leaf)
-}
-
-/// [`query_subtree`] with a caller's tester and prepared watertight ray.
-#[allow(clippy::too_many_arguments)] // the hot path: plain values
-#[inline(always)]
-pub fn subtree_with<const ANY: bool, B: BoxTester<8>>(
-    nodes: &[WideNode<8>],
-    blocks: &[Triangle4],
-    tester: &B,
-    wray: &WatertightRay,
-    t_min: f32,
-    start: u32,
-    t_max: f32,
-    counters: &mut TraversalCounters,
-) -> Option<LeafHit> {
-    let mut best: Option<LeafHit> = None;
-    traverse::<8, ANY, _, _>(
-        nodes,
-        tester,
-        start,
-        t_max,
-        counters,
-        #[inline(always)]
-        |first, count, t_max| {
-            intersect_blocks::<ANY>(
-                blocks,
-                wray,
-                t_min,
-                first,
-                count,
-                t_max,
-                &mut best,
-                B::SIMD_TRIANGLES,
-            )
-        },
-    );
-    best
 }
 
 /// Closest (or, with `ANY`, some) hit within `[ray.t_min, t_max]` in the

@@ -159,7 +159,7 @@ impl ObjectBvh {
         let t_min = ray.t_min;
         if let (Some(wide), Some(&w)) = (&self.wide, self.wide_of.get(node as usize)) {
             if !is_leaf_ref(w) {
-                return subtree_with::<ANY, B>(
+                return subtree_with::<8, ANY, B>(
                     &wide.wide.nodes,
                     &wide.blocks,
                     tester,
