@@ -156,8 +156,33 @@ impl ObjectBvh {
         stack: &mut TraversalStack,
         counters: &mut TraversalCounters,
     ) -> Option<(f32, f32, f32, u32)> {
+        let w = self
+            .wide_of
+            .get(node as usize)
+            .copied()
+            .unwrap_or(WIDE_EMPTY);
+        self.query_entry::<ANY, B>(w, node, ray, bray, wray, tester, t_max, stack, counters)
+    }
+
+    /// [`ObjectBvh::query_node`] with the node's wide reference `w` already
+    /// looked up (`wide_of[node]`, or `WIDE_EMPTY` for the binary path), as
+    /// the top level stores it per ref.
+    #[allow(clippy::too_many_arguments)] // the hot path: plain values
+    #[inline(always)]
+    pub fn query_entry<const ANY: bool, B: BoxTester<8>>(
+        &self,
+        w: u32,
+        node: u32,
+        ray: &Ray,
+        bray: &BoxRay,
+        wray: &WatertightRay,
+        tester: &B,
+        t_max: f32,
+        stack: &mut TraversalStack,
+        counters: &mut TraversalCounters,
+    ) -> Option<(f32, f32, f32, u32)> {
         let t_min = ray.t_min;
-        if let (Some(wide), Some(&w)) = (&self.wide, self.wide_of.get(node as usize)) {
+        if let Some(wide) = &self.wide {
             if !is_leaf_ref(w) {
                 return subtree_with::<8, ANY, B>(
                     &wide.wide.nodes,
@@ -220,6 +245,22 @@ pub struct TopRef {
 
 const _: () = assert!(std::mem::size_of::<TopRef>() == 16);
 
+/// What traversal needs of a ref, in one 16-byte load: the object, the
+/// instance, the wide reference of the ref's node (`wide_of[node]`, or
+/// `WIDE_EMPTY` when the object has no wide layout) and the binary node.
+/// Looking these up through `refs`, the object and its `wide_of` map cost
+/// a chain of dependent cache misses per top-level leaf.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(C)]
+pub struct RefEntry {
+    pub object: u32,
+    pub instance: u32,
+    pub wide: u32,
+    pub node: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<RefEntry>() == 16);
+
 /// An instance's transforms as traversal needs them.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct InstanceXf {
@@ -279,6 +320,8 @@ pub struct TopLevelAccel {
     pub wide: Option<WideBvh<8>>,
     /// The traversal kernel (the scene's choice, by default [`Kernel::best`]).
     pub kernel: Kernel,
+    /// One [`RefEntry`] per ref, made with the accel.
+    pub entries: Vec<RefEntry>,
 }
 
 /// The best hit so far inside a top-level traversal: (t, u, v, leaf-order
@@ -323,11 +366,15 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
             #[inline(always)]
             |first, count, t_max| {
                 for ri in first..first + count {
-                    let r = &a.refs[ri as usize];
-                    let Some(obj) = a.object(r) else { continue };
+                    let r = &a.entries[ri as usize];
+                    let Some(obj) = a.objects.get(r.object as usize).and_then(|o| o.as_deref())
+                    else {
+                        continue;
+                    };
                     let hit = if r.instance == INVALID_ID {
-                        obj.query_node::<ANY, _>(
-                            r.node, ray, &bray, &wray, &world, *t_max, &mut stack, &mut inner,
+                        obj.query_entry::<ANY, _>(
+                            r.wide, r.node, ray, &bray, &wray, &world, *t_max, &mut stack,
+                            &mut inner,
                         )
                     } else {
                         let (lr, lb, lw, lt) = match cached {
@@ -339,8 +386,8 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
                                 (lr, lb, lw, lt)
                             }
                         };
-                        obj.query_node::<ANY, _>(
-                            r.node, &lr, &lb, &lw, &lt, *t_max, &mut stack, &mut inner,
+                        obj.query_entry::<ANY, _>(
+                            r.wide, r.node, &lr, &lb, &lw, &lt, *t_max, &mut stack, &mut inner,
                         )
                     };
                     if let Some((t, u, v, k)) = hit {
@@ -375,6 +422,21 @@ impl TopLevelAccel {
         kernel: Kernel,
     ) -> Self {
         let wide = WideBvh::<8>::from_bvh(&tree).ok().filter(|w| !w.is_empty());
+        let entries = refs
+            .par_iter()
+            .with_min_len(4096)
+            .map(|r| RefEntry {
+                object: r.object,
+                instance: r.instance,
+                wide: objects
+                    .get(r.object as usize)
+                    .and_then(|o| o.as_deref())
+                    .and_then(|o| o.wide.as_ref().and(o.wide_of.get(r.node as usize)))
+                    .copied()
+                    .unwrap_or(WIDE_EMPTY),
+                node: r.node,
+            })
+            .collect();
         Self {
             tree,
             refs,
@@ -383,6 +445,7 @@ impl TopLevelAccel {
             build_stats,
             wide,
             kernel,
+            entries,
         }
     }
 
