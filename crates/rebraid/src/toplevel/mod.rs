@@ -328,6 +328,9 @@ pub struct TopLevelAccel {
 /// triangle index within its object, ref index).
 type RefHit = (f32, f32, f32, u32, u32);
 
+/// Prepared instance rays kept per ray (see `RayWalk`).
+const INSTANCE_CACHE: usize = 4;
+
 /// One ray through the top level and into the object BVHs, run inside a
 /// SIMD kernel's context by [`with_kernel`]: testers are made for the world
 /// ray once and for each instance's object-space ray once per run of refs
@@ -353,7 +356,10 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
         }
         let world = factory.make(ray);
         let wray = WatertightRay::new(ray.origin, ray.dir);
-        let mut cached: Option<(u32, Ray, BoxRay, WatertightRay, F::Tester)> = None;
+        // Prepared instance rays, direct-mapped by instance id: refs of a
+        // few overlapping instances alternate along a ray.
+        let mut cached: [Option<(u32, Ray, BoxRay, WatertightRay, F::Tester)>; INSTANCE_CACHE] =
+            [None; INSTANCE_CACHE];
         let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
         let mut inner = TraversalCounters::default();
         let mut best = None;
@@ -377,17 +383,15 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
                             &mut inner,
                         )
                     } else {
-                        let (lr, lb, lw, lt) = match cached {
-                            Some((id, lr, lb, lw, lt)) if id == r.instance => (lr, lb, lw, lt),
-                            _ => {
-                                let (lr, lb, lw) = a.instances[r.instance as usize].local_ray(ray);
-                                let lt = factory.make(&lr);
-                                cached = Some((r.instance, lr, lb, lw, lt));
-                                (lr, lb, lw, lt)
-                            }
-                        };
+                        let slot = &mut cached[r.instance as usize % INSTANCE_CACHE];
+                        if slot.as_ref().is_none_or(|c| c.0 != r.instance) {
+                            let (lr, lb, lw) = a.instances[r.instance as usize].local_ray(ray);
+                            let lt = factory.make(&lr);
+                            *slot = Some((r.instance, lr, lb, lw, lt));
+                        }
+                        let (_, lr, lb, lw, lt) = slot.as_ref().expect("set just above");
                         obj.query_entry::<ANY, _>(
-                            r.wide, r.node, &lr, &lb, &lw, &lt, *t_max, &mut stack, &mut inner,
+                            r.wide, r.node, lr, lb, lw, lt, *t_max, &mut stack, &mut inner,
                         )
                     };
                     if let Some((t, u, v, k)) = hit {
