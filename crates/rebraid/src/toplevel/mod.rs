@@ -331,6 +331,10 @@ type RefHit = (f32, f32, f32, u32, u32);
 /// Prepared instance rays kept per ray (see `RayWalk`).
 const INSTANCE_CACHE: usize = 4;
 
+/// An instance's id and the ray in its space, prepared for its box, triangle
+/// and SIMD box tests.
+type InstanceRay<T> = (u32, Ray, BoxRay, WatertightRay, T);
+
 /// One ray through the top level and into the object BVHs, run inside a
 /// SIMD kernel's context by [`with_kernel`]: testers are made for the world
 /// ray once and for each instance's object-space ray once per run of refs
@@ -358,8 +362,7 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
         let wray = WatertightRay::new(ray.origin, ray.dir);
         // Prepared instance rays, direct-mapped by instance id: refs of a
         // few overlapping instances alternate along a ray.
-        let mut cached: [Option<(u32, Ray, BoxRay, WatertightRay, F::Tester)>; INSTANCE_CACHE] =
-            [None; INSTANCE_CACHE];
+        let mut cached: [Option<InstanceRay<F::Tester>>; INSTANCE_CACHE] = [None; INSTANCE_CACHE];
         let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
         let mut inner = TraversalCounters::default();
         let mut best = None;
