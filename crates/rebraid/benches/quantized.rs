@@ -74,8 +74,14 @@ fn quantize(node: &WideNode<8>) -> QuantizedNode8 {
     };
     for axis in 0..3 {
         let planes = node.planes();
-        let lo = planes[axis][..n].iter().copied().fold(f32::INFINITY, f32::min);
-        let hi = planes[axis + 3][..n].iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        let lo = planes[axis][..n]
+            .iter()
+            .copied()
+            .fold(f32::INFINITY, f32::min);
+        let hi = planes[axis + 3][..n]
+            .iter()
+            .copied()
+            .fold(f32::NEG_INFINITY, f32::max);
         let extent = (hi as f64 - lo as f64) / 255.0;
         // A power of two: `q * scale` is exact, so a plane rounds once.
         let scale = if extent > 0.0 {
@@ -86,8 +92,8 @@ fn quantize(node: &WideNode<8>) -> QuantizedNode8 {
         q.origin[axis] = lo;
         q.scale[axis] = scale;
         let deq = |k: u8| (k as f32).mul_add(scale, lo);
-        for slot in 0..n {
-            let (bmin, bmax) = (planes[axis][slot], planes[axis + 3][slot]);
+        let (mins, maxs) = (&planes[axis][..n], &planes[axis + 3][..n]);
+        for (slot, (&bmin, &bmax)) in mins.iter().zip(maxs).enumerate() {
             let mut k = ((bmin - lo) / scale).floor().clamp(0.0, 255.0) as u8;
             while k > 0 && deq(k) > bmin {
                 k -= 1;
@@ -96,7 +102,10 @@ fn quantize(node: &WideNode<8>) -> QuantizedNode8 {
             while m < 255 && deq(m) < bmax {
                 m += 1;
             }
-            assert!(deq(k) <= bmin && deq(m) >= bmax, "quantised box must contain the child's");
+            assert!(
+                deq(k) <= bmin && deq(m) >= bmax,
+                "quantised box must contain the child's"
+            );
             q.q[axis][slot] = k;
             q.q[axis + 3][slot] = m;
         }
@@ -110,7 +119,12 @@ trait Node8 {
     fn child(&self) -> &[u32; 8];
     /// # Safety
     /// AVX2 and FMA.
-    unsafe fn planes(&self, near_plane: usize, far_plane: usize, axis: usize) -> (std::arch::x86_64::__m256, std::arch::x86_64::__m256);
+    unsafe fn planes(
+        &self,
+        near_plane: usize,
+        far_plane: usize,
+        axis: usize,
+    ) -> (std::arch::x86_64::__m256, std::arch::x86_64::__m256);
 }
 
 impl Node8 for QuantizedNode8 {
@@ -119,7 +133,12 @@ impl Node8 for QuantizedNode8 {
         &self.child
     }
     #[inline(always)]
-    unsafe fn planes(&self, near_plane: usize, far_plane: usize, a: usize) -> (std::arch::x86_64::__m256, std::arch::x86_64::__m256) {
+    unsafe fn planes(
+        &self,
+        near_plane: usize,
+        far_plane: usize,
+        a: usize,
+    ) -> (std::arch::x86_64::__m256, std::arch::x86_64::__m256) {
         use std::arch::x86_64::*;
         // SAFETY: AVX2 per the contract; each load reads one `[u8; 8]` row.
         unsafe {
@@ -129,7 +148,10 @@ impl Node8 for QuantizedNode8 {
             let rf = self.q[far_plane].as_ptr() as *const __m128i;
             let qn = _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(_mm_loadl_epi64(rn)));
             let qf = _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(_mm_loadl_epi64(rf)));
-            (_mm256_fmadd_ps(qn, scale, origin), _mm256_fmadd_ps(qf, scale, origin))
+            (
+                _mm256_fmadd_ps(qn, scale, origin),
+                _mm256_fmadd_ps(qf, scale, origin),
+            )
         }
     }
 }
@@ -140,11 +162,21 @@ impl Node8 for WideNode<8> {
         &self.child
     }
     #[inline(always)]
-    unsafe fn planes(&self, near_plane: usize, far_plane: usize, _a: usize) -> (std::arch::x86_64::__m256, std::arch::x86_64::__m256) {
+    unsafe fn planes(
+        &self,
+        near_plane: usize,
+        far_plane: usize,
+        _a: usize,
+    ) -> (std::arch::x86_64::__m256, std::arch::x86_64::__m256) {
         use std::arch::x86_64::*;
         let p = self.planes();
         // SAFETY: AVX2 per the contract; each load reads one `[f32; 8]`.
-        unsafe { (_mm256_loadu_ps(p[near_plane].as_ptr()), _mm256_loadu_ps(p[far_plane].as_ptr())) }
+        unsafe {
+            (
+                _mm256_loadu_ps(p[near_plane].as_ptr()),
+                _mm256_loadu_ps(p[far_plane].as_ptr()),
+            )
+        }
     }
 }
 
@@ -316,7 +348,10 @@ fn prepared(name: &'static str) -> Option<&'static Prepared> {
                         || local_answer(&p, &p.w8.wide.nodes, r) != want
                 })
                 .count();
-            assert_eq!(bad, 0, "{name}: the experiment's kernel disagrees on {bad} rays");
+            assert_eq!(
+                bad, 0,
+                "{name}: the experiment's kernel disagrees on {bad} rays"
+            );
         }
         eprintln!(
             "{name}: {} wide nodes, {} KB uncompressed, {} KB quantised; answers agree",
@@ -330,7 +365,11 @@ fn prepared(name: &'static str) -> Option<&'static Prepared> {
 
 fn trace(bencher: Bencher, case: &str, coherent: bool, any: bool) {
     let (scene, variant) = case.split_once('/').unwrap();
-    let Some(p) = SCENES.iter().find(|s| **s == scene).and_then(|s| prepared(s)) else {
+    let Some(p) = SCENES
+        .iter()
+        .find(|s| **s == scene)
+        .and_then(|s| prepared(s))
+    else {
         return;
     };
     let rays = if coherent { &p.coherent } else { &p.incoherent };
@@ -344,10 +383,18 @@ fn trace(bencher: Bencher, case: &str, coherent: bool, any: bool) {
                 // SAFETY: `main` checked AVX2 and FMA.
                 let hit = unsafe {
                     match (variant, any) {
-                        ("q8_avx2", true) => query_quantized::<true, _>(q, blocks, r).flatten().is_some(),
-                        ("q8_avx2", false) => query_quantized::<false, _>(q, blocks, r).flatten().is_some(),
-                        ("w8_local", true) => query_quantized::<true, _>(w, blocks, r).flatten().is_some(),
-                        ("w8_local", false) => query_quantized::<false, _>(w, blocks, r).flatten().is_some(),
+                        ("q8_avx2", true) => {
+                            query_quantized::<true, _>(q, blocks, r).flatten().is_some()
+                        }
+                        ("q8_avx2", false) => query_quantized::<false, _>(q, blocks, r)
+                            .flatten()
+                            .is_some(),
+                        ("w8_local", true) => {
+                            query_quantized::<true, _>(w, blocks, r).flatten().is_some()
+                        }
+                        ("w8_local", false) => query_quantized::<false, _>(w, blocks, r)
+                            .flatten()
+                            .is_some(),
                         (_, true) => p.w8.occluded_with(Kernel::Avx2, r),
                         (_, false) => p.w8.intersect_with(Kernel::Avx2, r).is_some(),
                     }

@@ -6,7 +6,7 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::bvh::{BoxRay, BuildParams, Kernel, TraversalCounters, WideTriangleBvh, query_subtree};
+use crate::bvh::{BuildParams, Kernel, TraversalCounters, WideTriangleBvh, query_subtree};
 use crate::{Error, Hit, MeshBvh, Ray, TriangleMesh};
 
 /// Where a triangle of the flat BVH came from.
@@ -78,14 +78,12 @@ impl FlatAccel {
         h
     }
 
-    /// The wide tree when it exists and the ray enters the root box:
-    /// `None` = no wide layout, `Some(None)` = the ray misses everything.
+    /// The wide tree when it exists and the ray is valid: `None` = no wide
+    /// layout, `Some(None)` = nothing to trace. (No separate root-box test:
+    /// the kernel tests the root's children at once.)
     fn wide_entry(&self, ray: &Ray) -> Option<Option<&WideTriangleBvh>> {
         let wide = self.wide.as_ref()?;
-        let root = self.bvh.bvh.nodes.first()?;
-        let enters = ray.is_valid()
-            && BoxRay::new(ray.origin, ray.dir).hit_node(root, ray.t_min, ray.t_max)
-                < f32::INFINITY;
+        let enters = ray.is_valid() && !self.bvh.bvh.nodes.is_empty();
         Some(enters.then_some(wide))
     }
 

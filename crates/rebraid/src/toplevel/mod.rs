@@ -139,7 +139,7 @@ impl ObjectBvh {
     /// The closest hit (or, with `ANY`, some hit) within `[ray.t_min, t_max]`
     /// in the subtree of binary node `node`, whose box the caller has tested
     /// (a top-level leaf), as (t, u, v, leaf-order slot). `ray` is in object
-    /// space, `bray`, `wray` and `tester` its prepared forms. An inner node
+    /// space, `wray` and `tester` its prepared forms. An inner node
     /// collapsed into the wide layout is traversed with the caller's SIMD
     /// tester, a leaf's triangle blocks are tested directly, and an object
     /// without the wide layout runs the binary scalar kernel.
@@ -149,7 +149,6 @@ impl ObjectBvh {
         &self,
         node: u32,
         ray: &Ray,
-        bray: &BoxRay,
         wray: &WatertightRay,
         tester: &B,
         t_max: f32,
@@ -161,7 +160,7 @@ impl ObjectBvh {
             .get(node as usize)
             .copied()
             .unwrap_or(WIDE_EMPTY);
-        self.query_entry::<ANY, B>(w, node, ray, bray, wray, tester, t_max, stack, counters)
+        self.query_entry::<ANY, B>(w, node, ray, wray, tester, t_max, stack, counters)
     }
 
     /// [`ObjectBvh::query_node`] with the node's wide reference `w` already
@@ -174,7 +173,6 @@ impl ObjectBvh {
         w: u32,
         node: u32,
         ray: &Ray,
-        bray: &BoxRay,
         wray: &WatertightRay,
         tester: &B,
         t_max: f32,
@@ -213,10 +211,12 @@ impl ObjectBvh {
                 return best;
             }
         }
+        // The binary fallback (objects without the wide layout).
+        let bray = BoxRay::new(ray.origin, ray.dir);
         let mut best = None;
         self.mesh
             .bvh
-            .traverse_from(node, bray, t_min, t_max, stack, counters, |leaf, tm| {
+            .traverse_from(node, &bray, t_min, t_max, stack, counters, |leaf, tm| {
                 if ANY {
                     if self.mesh.occluded_leaf(wray, leaf, t_min, *tm) {
                         best = Some((0.0, 0.0, 0.0, 0));
@@ -282,7 +282,7 @@ impl InstanceXf {
     /// The ray in the instance's object space, with its prepared forms (the
     /// direction is transformed unnormalised, so `t` means the same).
     #[inline]
-    pub fn local_ray(&self, ray: &Ray) -> (Ray, BoxRay, WatertightRay) {
+    pub fn local_ray(&self, ray: &Ray) -> (Ray, WatertightRay) {
         let o = self.world_to_object.transform_point3(ray.origin);
         let d = self.world_to_object.transform_vector3(ray.dir);
         (
@@ -292,7 +292,6 @@ impl InstanceXf {
                 t_min: ray.t_min,
                 t_max: ray.t_max,
             },
-            BoxRay::new(o, d),
             WatertightRay::new(o, d),
         )
     }
@@ -333,7 +332,7 @@ const INSTANCE_CACHE: usize = 4;
 
 /// An instance's id and the ray in its space, prepared for its box, triangle
 /// and SIMD box tests.
-type InstanceRay<T> = (u32, Ray, BoxRay, WatertightRay, T);
+type InstanceRay<T> = (u32, Ray, WatertightRay, T);
 
 /// One ray through the top level and into the object BVHs, run inside a
 /// SIMD kernel's context by [`with_kernel`]: testers are made for the world
@@ -351,13 +350,10 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
     #[inline(always)]
     fn run<F: TesterFactory>(&mut self, factory: &F) {
         let (a, ray) = (self.accel, self.ray);
-        let (Some(wide), Some(root)) = (&a.wide, a.tree.nodes.first()) else {
+        // No separate root-box test: the kernel tests the root's children.
+        let Some(wide) = &a.wide else {
             return;
         };
-        let bray = BoxRay::new(ray.origin, ray.dir);
-        if bray.hit_node(root, ray.t_min, ray.t_max) == f32::INFINITY {
-            return;
-        }
         let world = factory.make(ray);
         let wray = WatertightRay::new(ray.origin, ray.dir);
         // Prepared instance rays, direct-mapped by instance id: refs of a
@@ -382,19 +378,18 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
                     };
                     let hit = if r.instance == INVALID_ID {
                         obj.query_entry::<ANY, _>(
-                            r.wide, r.node, ray, &bray, &wray, &world, *t_max, &mut stack,
-                            &mut inner,
+                            r.wide, r.node, ray, &wray, &world, *t_max, &mut stack, &mut inner,
                         )
                     } else {
                         let slot = &mut cached[r.instance as usize % INSTANCE_CACHE];
                         if slot.as_ref().is_none_or(|c| c.0 != r.instance) {
-                            let (lr, lb, lw) = a.instances[r.instance as usize].local_ray(ray);
+                            let (lr, lw) = a.instances[r.instance as usize].local_ray(ray);
                             let lt = factory.make(&lr);
-                            *slot = Some((r.instance, lr, lb, lw, lt));
+                            *slot = Some((r.instance, lr, lw, lt));
                         }
-                        let (_, lr, lb, lw, lt) = slot.as_ref().expect("set just above");
+                        let (_, lr, lw, lt) = slot.as_ref().expect("set just above");
                         obj.query_entry::<ANY, _>(
-                            r.wide, r.node, lr, lb, lw, lt, *t_max, &mut stack, &mut inner,
+                            r.wide, r.node, lr, lw, lt, *t_max, &mut stack, &mut inner,
                         )
                     };
                     if let Some((t, u, v, k)) = hit {
