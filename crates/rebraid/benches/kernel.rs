@@ -13,9 +13,6 @@
 mod common;
 mod support;
 
-use std::collections::HashMap;
-use std::sync::{Mutex, OnceLock};
-
 use divan::counter::ItemsCount;
 use divan::{Bencher, black_box};
 use rebraid::{BuildParams, Hit, MeshBvh, Ray, TriangleMesh};
@@ -43,11 +40,8 @@ struct Prepared {
 
 /// Scenes are built once per process and shared by the traversal benches.
 fn prepared(name: &'static str) -> Option<&'static Prepared> {
-    static CACHE: OnceLock<Mutex<HashMap<&'static str, Option<&'static Prepared>>>> =
-        OnceLock::new();
-    let cache = CACHE.get_or_init(Default::default);
-    let mut cache = cache.lock().unwrap();
-    *cache.entry(name).or_insert_with(|| {
+    static CACHE: support::SceneCache<Prepared> = support::SceneCache::new();
+    support::cached(&CACHE, name, || {
         let mesh = support::load(name)?;
         let bvh = MeshBvh::build(&mesh, &BuildParams::default()).unwrap();
         let b = mesh.bounds();
@@ -66,18 +60,18 @@ fn prepared(name: &'static str) -> Option<&'static Prepared> {
             bvh.stats().sah_cost,
             100.0 * hits as f64 / RAYS as f64
         );
-        Some(&*Box::leak(Box::new(Prepared {
+        Some(Prepared {
             mesh,
             bvh,
             coherent,
             incoherent,
-        })))
+        })
     })
 }
 
 /// A one-thread rayon pool: "single thread" builds and batches run in it.
 fn single_thread_pool() -> &'static rayon::ThreadPool {
-    static POOL: OnceLock<rayon::ThreadPool> = OnceLock::new();
+    static POOL: std::sync::OnceLock<rayon::ThreadPool> = std::sync::OnceLock::new();
     POOL.get_or_init(|| {
         rayon::ThreadPoolBuilder::new()
             .num_threads(1)

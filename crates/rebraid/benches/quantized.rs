@@ -21,9 +21,6 @@
 mod common;
 mod support;
 
-use std::collections::HashMap;
-use std::sync::{Mutex, OnceLock};
-
 use divan::counter::ItemsCount;
 use divan::{Bencher, black_box};
 use rebraid::bvh::triangle4::{LeafHit, Triangle4, intersect_blocks};
@@ -322,11 +319,8 @@ fn wide_answer(p: &Prepared, r: &Ray) -> (Option<u32>, bool) {
 }
 
 fn prepared(name: &'static str) -> Option<&'static Prepared> {
-    static CACHE: OnceLock<Mutex<HashMap<&'static str, Option<&'static Prepared>>>> =
-        OnceLock::new();
-    let cache = CACHE.get_or_init(Default::default);
-    let mut cache = cache.lock().unwrap();
-    *cache.entry(name).or_insert_with(|| {
+    static CACHE: support::SceneCache<Prepared> = support::SceneCache::new();
+    support::cached(&CACHE, name, || {
         let mesh = support::load(name)?;
         let bvh = MeshBvh::build(&mesh, &BuildParams::default()).unwrap();
         let w8 = WideMeshBvh::<8>::from_mesh(&bvh).unwrap();
@@ -359,17 +353,12 @@ fn prepared(name: &'static str) -> Option<&'static Prepared> {
             std::mem::size_of_val(p.w8.wide.nodes.as_slice()) / 1024,
             std::mem::size_of_val(p.quantized.as_slice()) / 1024,
         );
-        Some(&*Box::leak(Box::new(p)))
+        Some(p)
     })
 }
 
 fn trace(bencher: Bencher, case: &str, coherent: bool, any: bool) {
-    let (scene, variant) = case.split_once('/').unwrap();
-    let Some(p) = SCENES
-        .iter()
-        .find(|s| **s == scene)
-        .and_then(|s| prepared(s))
-    else {
+    let Some((p, variant)) = support::case(case, &SCENES, prepared) else {
         return;
     };
     let rays = if coherent { &p.coherent } else { &p.incoherent };
@@ -406,10 +395,7 @@ fn trace(bencher: Bencher, case: &str, coherent: bool, any: bool) {
 }
 
 fn cases() -> Vec<&'static str> {
-    SCENES
-        .iter()
-        .flat_map(|s| VARIANTS.iter().map(move |v| &*format!("{s}/{v}").leak()))
-        .collect()
+    support::cases(&SCENES, &VARIANTS)
 }
 
 #[divan::bench(args = cases(), sample_count = 8)]

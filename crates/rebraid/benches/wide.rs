@@ -17,9 +17,6 @@
 mod common;
 mod support;
 
-use std::collections::HashMap;
-use std::sync::{Mutex, OnceLock};
-
 use divan::counter::ItemsCount;
 use divan::{Bencher, black_box};
 use rebraid::bvh::{Kernel, WideMeshBvh};
@@ -77,11 +74,8 @@ fn answer(p: &Prepared, variant: &str, r: &Ray) -> (Option<u32>, bool) {
 }
 
 fn prepared(name: &'static str) -> Option<&'static Prepared> {
-    static CACHE: OnceLock<Mutex<HashMap<&'static str, Option<&'static Prepared>>>> =
-        OnceLock::new();
-    let cache = CACHE.get_or_init(Default::default);
-    let mut cache = cache.lock().unwrap();
-    *cache.entry(name).or_insert_with(|| {
+    static CACHE: support::SceneCache<Prepared> = support::SceneCache::new();
+    support::cached(&CACHE, name, || {
         let mesh = support::load(name)?;
         let bvh = MeshBvh::build(&mesh, &BuildParams::default()).unwrap();
         let w4 = WideMeshBvh::<4>::from_mesh(&bvh).unwrap();
@@ -128,7 +122,7 @@ fn prepared(name: &'static str) -> Option<&'static Prepared> {
             s8.bytes / 1024,
             s8.max_depth,
         );
-        Some(&*Box::leak(Box::new(p)))
+        Some(p)
     })
 }
 
@@ -140,12 +134,7 @@ enum Query {
 
 /// One thread, no pool: a plain loop over the rays.
 fn trace(bencher: Bencher, case: &str, coherent: bool, query: Query) {
-    let (scene, variant) = case.split_once('/').unwrap();
-    let Some(p) = SCENES
-        .iter()
-        .find(|s| **s == scene)
-        .and_then(|s| prepared(s))
-    else {
+    let Some((p, variant)) = support::case(case, &SCENES, prepared) else {
         return;
     };
     let kernel = kernel_of(variant);
@@ -174,12 +163,8 @@ fn trace(bencher: Bencher, case: &str, coherent: bool, query: Query) {
         });
 }
 
-/// Every `scene/variant` pair.
 fn cases() -> Vec<&'static str> {
-    SCENES
-        .iter()
-        .flat_map(|s| VARIANTS.iter().map(move |v| &*format!("{s}/{v}").leak()))
-        .collect()
+    support::cases(&SCENES, &VARIANTS)
 }
 
 #[divan::bench(args = cases(), sample_count = 8)]

@@ -1,10 +1,50 @@
-//! Scenes and ray sets shared by the `kernel` and `wide` benches.
+//! Scenes, ray sets and harness helpers shared by the benches.
 
 use rand::Rng;
 use rebraid::glam::Vec3;
 use rebraid::{Aabb, Ray, TriangleMesh};
 
 use crate::common;
+
+/// A per-process cache of prepared scenes: `make` runs once per name (and
+/// may fail with `None`, say for a scene file that is missing); every later
+/// call gets the same leaked value. The benches build each scene once and
+/// share it between their traversal benchmarks.
+pub type SceneCache<P> = std::sync::OnceLock<
+    std::sync::Mutex<std::collections::HashMap<&'static str, Option<&'static P>>>,
+>;
+
+pub fn cached<P: Sync + 'static>(
+    cache: &'static SceneCache<P>,
+    name: &'static str,
+    make: impl FnOnce() -> Option<P>,
+) -> Option<&'static P> {
+    let mut map = cache.get_or_init(Default::default).lock().unwrap();
+    *map.entry(name)
+        .or_insert_with(|| make().map(|p| &*Box::leak(Box::new(p))))
+}
+
+/// Every `scene/variant` pair, as `divan` arguments.
+#[allow(dead_code)] // not every bench has variants
+pub fn cases(scenes: &[&str], variants: &[&str]) -> Vec<&'static str> {
+    scenes
+        .iter()
+        .flat_map(|s| variants.iter().map(move |v| &*format!("{s}/{v}").leak()))
+        .collect()
+}
+
+/// The prepared scene and the variant of a `scene/variant` case (`None`
+/// when the scene is unknown or could not be prepared).
+#[allow(dead_code)] // not every bench has variants
+pub fn case<'a, P: 'static>(
+    case: &'a str,
+    scenes: &[&'static str],
+    prepared: impl Fn(&'static str) -> Option<&'static P>,
+) -> Option<(&'static P, &'a str)> {
+    let (scene, variant) = case.split_once('/')?;
+    let name = *scenes.iter().find(|s| **s == scene)?;
+    Some((prepared(name)?, variant))
+}
 
 /// About a million triangles: a 500 x 500 height-field terrain (500k) and
 /// 400 icospheres of 1,280 triangles scattered over it (512k).
