@@ -19,8 +19,8 @@ use crate::bvh::triangle4::intersect_blocks;
 use crate::bvh::wide::{WIDE_EMPTY, decode_leaf, is_leaf_ref};
 use crate::bvh::{
     BoxRay, BoxTester, Bvh, BvhNode, Kernel, SahCosts, TRAVERSAL_STACK, TesterFactory,
-    TraversalCounters, TraversalStack, WideBvh, WideQuery, WideTriangleBvh, subtree_with,
-    traverse_with, with_kernel,
+    TraversalCounters, WideBvh, WideQuery, WideTriangleBvh, subtree_with, traverse_with,
+    with_kernel,
 };
 use crate::transform::{transform_box, transform_normal};
 use crate::triangle::WatertightRay;
@@ -138,34 +138,13 @@ impl ObjectBvh {
 
     /// The closest hit (or, with `ANY`, some hit) within `[ray.t_min, t_max]`
     /// in the subtree of binary node `node`, whose box the caller has tested
-    /// (a top-level leaf), as (t, u, v, leaf-order slot). `ray` is in object
-    /// space, `wray` and `tester` its prepared forms. An inner node
-    /// collapsed into the wide layout is traversed with the caller's SIMD
-    /// tester, a leaf's triangle blocks are tested directly, and an object
-    /// without the wide layout runs the binary scalar kernel.
-    #[allow(clippy::too_many_arguments)] // the hot path: plain values
-    #[inline(always)]
-    pub fn query_node<const ANY: bool, B: BoxTester<8>>(
-        &self,
-        node: u32,
-        ray: &Ray,
-        wray: &WatertightRay,
-        tester: &B,
-        t_max: f32,
-        stack: &mut TraversalStack,
-        counters: &mut TraversalCounters,
-    ) -> Option<(f32, f32, f32, u32)> {
-        let w = self
-            .wide_of
-            .get(node as usize)
-            .copied()
-            .unwrap_or(WIDE_EMPTY);
-        self.query_entry::<ANY, B>(w, node, ray, wray, tester, t_max, stack, counters)
-    }
-
-    /// [`ObjectBvh::query_node`] with the node's wide reference `w` already
-    /// looked up (`wide_of[node]`, or `WIDE_EMPTY` for the binary path), as
-    /// the top level stores it per ref.
+    /// (a top-level leaf), as (t, u, v, leaf-order slot). `w` is the node's
+    /// wide reference (`wide_of[node]`, or `WIDE_EMPTY`), which the top level
+    /// stores per ref in [`RefEntry`]. `ray` is in object space, `wray` and
+    /// `tester` its prepared forms. An inner node collapsed into the wide
+    /// layout is traversed with the caller's SIMD tester, a leaf's triangle
+    /// blocks are tested directly, and an object without the wide layout
+    /// runs the binary scalar kernel.
     #[allow(clippy::too_many_arguments)] // the hot path: plain values
     #[inline(always)]
     pub fn query_entry<const ANY: bool, B: BoxTester<8>>(
@@ -176,7 +155,6 @@ impl ObjectBvh {
         wray: &WatertightRay,
         tester: &B,
         t_max: f32,
-        stack: &mut TraversalStack,
         counters: &mut TraversalCounters,
     ) -> Option<(f32, f32, f32, u32)> {
         let t_min = ray.t_min;
@@ -211,12 +189,20 @@ impl ObjectBvh {
                 return best;
             }
         }
-        // The binary fallback (objects without the wide layout).
+        // The binary fallback (objects without the wide layout: a leaf
+        // larger than a wide leaf holds). Its setup lives here, not in every
+        // ray's walk.
         let bray = BoxRay::new(ray.origin, ray.dir);
+        let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
         let mut best = None;
-        self.mesh
-            .bvh
-            .traverse_from(node, &bray, t_min, t_max, stack, counters, |leaf, tm| {
+        self.mesh.bvh.traverse_from(
+            node,
+            &bray,
+            t_min,
+            t_max,
+            &mut stack,
+            counters,
+            |leaf, tm| {
                 if ANY {
                     if self.mesh.occluded_leaf(wray, leaf, t_min, *tm) {
                         best = Some((0.0, 0.0, 0.0, 0));
@@ -226,7 +212,8 @@ impl ObjectBvh {
                 }
                 self.mesh.intersect_leaf(wray, leaf, t_min, tm, &mut best);
                 false
-            });
+            },
+        );
         best
     }
 }
@@ -359,7 +346,6 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
         // Prepared instance rays, direct-mapped by instance id: refs of a
         // few overlapping instances alternate along a ray.
         let mut cached: [Option<InstanceRay<F::Tester>>; INSTANCE_CACHE] = [None; INSTANCE_CACHE];
-        let mut stack = [(0u32, 0.0f32); TRAVERSAL_STACK];
         let mut inner = TraversalCounters::default();
         let mut best = None;
         traverse_with::<ANY, _, _>(
@@ -378,7 +364,7 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
                     };
                     let hit = if r.instance == INVALID_ID {
                         obj.query_entry::<ANY, _>(
-                            r.wide, r.node, ray, &wray, &world, *t_max, &mut stack, &mut inner,
+                            r.wide, r.node, ray, &wray, &world, *t_max, &mut inner,
                         )
                     } else {
                         let slot = &mut cached[r.instance as usize % INSTANCE_CACHE];
@@ -388,9 +374,7 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
                             *slot = Some((r.instance, lr, lw, lt));
                         }
                         let (_, lr, lw, lt) = slot.as_ref().expect("set just above");
-                        obj.query_entry::<ANY, _>(
-                            r.wide, r.node, lr, lw, lt, *t_max, &mut stack, &mut inner,
-                        )
+                        obj.query_entry::<ANY, _>(r.wide, r.node, lr, lw, lt, *t_max, &mut inner)
                     };
                     if let Some((t, u, v, k)) = hit {
                         if ANY {
