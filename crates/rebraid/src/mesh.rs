@@ -1,10 +1,11 @@
 //! Triangle meshes and their BVHs (the object level of a two-level BVH).
 
-use glam::Vec3;
+use glam::{Vec3, Vec3A};
 use rayon::prelude::*;
 
 use crate::bvh::{
-    BoxRay, BuildParams, Bvh, BvhNode, BvhStats, SahCosts, TraversalCounters, build_bvh,
+    BinBox, BoxRay, BuildParams, Bvh, BvhNode, BvhStats, SahCosts, TraversalCounters,
+    build_bvh_aligned,
 };
 use crate::triangle::{WatertightRay, geometric_normal, intersect_triangle, is_degenerate};
 use crate::{Aabb, Error, Hit, INVALID_ID, Ray};
@@ -86,6 +87,23 @@ impl TriangleMesh {
     }
 
     /// One box and one centroid per triangle (box centres, as Embree bins by).
+    /// [`TriangleMesh::prim_boxes`] in the aligned form
+    /// [`crate::bvh::build_bvh_aligned`] takes.
+    pub fn prim_build_boxes(&self) -> (Vec<BinBox>, Vec<Vec3A>) {
+        (0..self.len())
+            .into_par_iter()
+            .with_min_len(4096)
+            .map(|i| {
+                let [a, b, c] = self.triangle(i).map(Vec3A::from);
+                let b = BinBox {
+                    min: a.min(b).min(c),
+                    max: a.max(b).max(c),
+                };
+                (b, b.center())
+            })
+            .unzip()
+    }
+
     pub fn prim_boxes(&self) -> (Vec<Aabb>, Vec<Vec3>) {
         (0..self.len())
             .into_par_iter()
@@ -114,8 +132,8 @@ impl MeshBvh {
     /// Validate the mesh and build its BVH.
     pub fn build(mesh: &TriangleMesh, params: &BuildParams) -> Result<Self, Error> {
         mesh.validate()?;
-        let (boxes, centroids) = mesh.prim_boxes();
-        let bvh = build_bvh(&boxes, &centroids, params)?;
+        let (boxes, centroids) = mesh.prim_build_boxes();
+        let bvh = build_bvh_aligned(&boxes, &centroids, params)?;
         let triangles = bvh
             .prim_indices
             .par_iter()

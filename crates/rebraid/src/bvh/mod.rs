@@ -11,7 +11,8 @@ pub mod triangle4;
 mod validate;
 pub mod wide;
 
-pub use build::{BuildParams, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh};
+pub use binning::BinBox;
+pub use build::{BuildParams, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh, build_bvh_aligned};
 pub(crate) use build::{compact_slots, split_slots};
 pub use node::BvhNode;
 pub use simd::{

@@ -52,7 +52,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use rayon::prelude::*;
 
 use super::{InstanceXf, ObjectBvh, TopRef};
-use crate::bvh::binning::{BinMapping, BinRange, Bins, MAX_BINS, SplitCandidate, with_bins};
+use crate::bvh::binning::{
+    BinBox, BinMapping, BinRange, Bins, MAX_BINS, SplitCandidate, with_bins,
+};
 use crate::bvh::wide::WIDE_EMPTY;
 use crate::bvh::{Bvh, BvhNode, MEDIAN_FROM_DEPTH, compact_slots, split_slots};
 use crate::{Aabb, Error, INVALID_ID};
@@ -640,7 +642,12 @@ impl BinRange for ListBinner<'_> {
         let bin_chunk = |chunk: &[BuildRef]| {
             let mut bins = Bins::<N>::default();
             for r in chunk {
-                bins.add(map, &r.bounds, r.bounds.center(), r.weight());
+                bins.add(
+                    map,
+                    &BinBox::from_aabb(&r.bounds),
+                    r.bounds.center().into(),
+                    r.weight(),
+                );
             }
             bins
         };
@@ -659,7 +666,12 @@ impl BinRange for ListBinner<'_> {
             // Filled in place (a returned `Bins` would be copied).
             let mut bins = Bins::<N>::default();
             for r in self.list {
-                bins.add(map, &r.bounds, r.bounds.center(), r.weight());
+                bins.add(
+                    map,
+                    &BinBox::from_aabb(&r.bounds),
+                    r.bounds.center().into(),
+                    r.weight(),
+                );
             }
             bins.best_split(map)
         }
@@ -818,7 +830,7 @@ fn build_list(
     }
     let nl = match split {
         Some((map, s)) => partition_refs(&mut list[..n], &mut scratch[..n], parallel, |r| {
-            map.bin(r.bounds.center(), s.axis) < s.bin
+            map.bin(r.bounds.center().into(), s.axis) < s.bin
         }),
         None => {
             let mid = n / 2;
