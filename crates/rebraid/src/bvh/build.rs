@@ -169,10 +169,19 @@ pub fn build_bvh_aligned(
         centroids,
         params,
     };
-    let root = build_part(&ctx, &mut prims, &mut scratch, 0, bounds, cbounds, 1);
-    let mut nodes = Vec::with_capacity(1 + root.descendants());
-    nodes.push(BvhNode::zeroed_node());
-    root.emit(0, &mut nodes);
+    let nodes = match build_part(&ctx, &mut prims, &mut scratch, 0, bounds, cbounds, 1) {
+        // One task built it all: its vector is the tree (no copy).
+        Part::Seq(mut nodes) => {
+            nodes.shrink_to_fit();
+            nodes
+        }
+        root => {
+            let mut nodes = Vec::with_capacity(1 + root.descendants());
+            nodes.push(BvhNode::zeroed_node());
+            root.emit(0, &mut nodes);
+            nodes
+        }
+    };
     let bvh = Bvh {
         nodes,
         prim_indices: prims,
@@ -199,9 +208,10 @@ pub fn build_bvh_aligned(
 /// own vector, already in final relative order, and only the few nodes split
 /// by parallel tasks are kept as `Split`s.
 enum Part {
-    /// The root of a subtree built by one task, and its descendants in
-    /// depth-first pair order with child indices relative to the vector.
-    Seq(BvhNode, Vec<BvhNode>),
+    /// A subtree built by one task: its root first, then its descendants in
+    /// depth-first pair order, child indices relative to the vector (so a
+    /// tree built by one task is already the final node array).
+    Seq(Vec<BvhNode>),
     /// A node whose halves were built by parallel tasks.
     Split(Aabb, Box<[Part; 2]>),
 }
@@ -210,7 +220,7 @@ impl Part {
     /// Number of nodes below the root.
     fn descendants(&self) -> usize {
         match self {
-            Part::Seq(_, desc) => desc.len(),
+            Part::Seq(nodes) => nodes.len() - 1,
             Part::Split(_, kids) => 2 + kids[0].descendants() + kids[1].descendants(),
         }
     }
@@ -218,19 +228,18 @@ impl Part {
     /// Write this subtree's root into `out[slot]` and append its descendants.
     fn emit(self, slot: usize, out: &mut Vec<BvhNode>) {
         match self {
-            Part::Seq(mut root, desc) => {
-                let base = out.len() as u32;
-                if !root.is_leaf() {
-                    root.index += base;
-                }
-                out[slot] = root;
-                out.extend(desc.iter().map(|&node| {
-                    let mut node = node;
+            Part::Seq(nodes) => {
+                // Relative index `i >= 1` lands at `out.len() + i - 1`.
+                let base = out.len() as u32 - 1;
+                let moved = |mut node: BvhNode| {
                     if !node.is_leaf() {
                         node.index += base;
                     }
                     node
-                }));
+                };
+                let (root, desc) = nodes.split_first().expect("a part has a root");
+                out[slot] = moved(*root);
+                out.extend(desc.iter().copied().map(moved));
             }
             Part::Split(bounds, kids) => {
                 let pair = out.len();
@@ -418,9 +427,8 @@ enum Decision {
     },
 }
 
-/// Choose between a leaf and the best binned SAH split of `prims` (global
-/// offset `first`); a split is applied (the range partitioned) before
-/// returning.
+/// Choose between a leaf and the best binned SAH split of `prims`; a split
+/// is applied (the range partitioned) before returning.
 fn decide(
     ctx: &Ctx,
     prims: &mut [u32],
@@ -516,15 +524,17 @@ fn build_part(
 ) -> Part {
     let n = prims.len();
     if n <= ctx.params.parallel_threshold {
-        // Typical trees have about one node per two primitives.
-        let mut desc = Vec::with_capacity(n);
-        let root = build_seq(
-            ctx, prims, scratch, first, bounds, cbounds, depth, &mut desc,
+        // Typical trees have about one node per two primitives; the root's
+        // slot first.
+        let mut nodes = Vec::with_capacity(n);
+        nodes.push(BvhNode::zeroed_node());
+        nodes[0] = build_seq(
+            ctx, prims, scratch, first, bounds, cbounds, depth, &mut nodes,
         );
-        return Part::Seq(root, desc);
+        return Part::Seq(nodes);
     }
     match decide(ctx, prims, scratch, bounds, cbounds, depth) {
-        Decision::Leaf => Part::Seq(BvhNode::leaf(bounds, first, n as u32), Vec::new()),
+        Decision::Leaf => Part::Seq(vec![BvhNode::leaf(bounds, first, n as u32)]),
         Decision::Split { mid, left, right } => {
             let (lp, rp) = prims.split_at_mut(mid);
             let (ls, rs) = scratch.split_at_mut(mid);
@@ -540,7 +550,8 @@ fn build_part(
 
 /// Build the subtree over `prims` (global offset `first`) in this task:
 /// returns its root and appends its descendants to `out` in depth-first
-/// pair order, child indices relative to `out`'s start.
+/// pair order, child indices relative to `out`'s start (where the caller
+/// keeps the root's slot).
 #[allow(clippy::too_many_arguments)]
 fn build_seq(
     ctx: &Ctx,
