@@ -151,18 +151,19 @@ unsafe fn intersect_packet(
         if !is_leaf_ref(current) {
             let node = &nodes[current as usize];
             let mut rows = [0u8; 8];
-            // SAFETY (this block): AVX2 and FMA per the function's contract.
             let mut nearest = _mm256_set1_ps(f32::INFINITY);
             let mut lanes = active;
             while lanes != 0 {
                 let r = lanes.trailing_zeros() as usize;
                 lanes &= lanes - 1;
+                // SAFETY: AVX2 and FMA per this function's contract.
                 let (mask, dist) = unsafe { test_node(&boxes[r], node, t_max[r]) };
                 rows[r] = mask as u8;
                 nearest = _mm256_min_ps(nearest, dist);
             }
             if rows != [0; 8] {
                 let mut dist = [0.0f32; 8];
+                // SAFETY: AVX per this function's contract; one `[f32; 8]`.
                 unsafe { _mm256_storeu_ps(dist.as_mut_ptr(), nearest) };
                 let masks = transpose8(rows);
                 // Children in order of their nearest entry over the rays.

@@ -86,9 +86,8 @@ impl TriangleMesh {
         })
     }
 
-    /// One box and one centroid per triangle (box centres, as Embree bins by).
     /// [`TriangleMesh::prim_boxes`] in the aligned form
-    /// [`crate::bvh::build_bvh_aligned`] takes.
+    /// [`crate::bvh::build_bvh_aligned`] takes (the same values).
     pub fn prim_build_boxes(&self) -> (Vec<BinBox>, Vec<Vec3A>) {
         (0..self.len())
             .into_par_iter()
@@ -104,6 +103,7 @@ impl TriangleMesh {
             .unzip()
     }
 
+    /// One box and one centroid per triangle (box centres, as Embree bins by).
     pub fn prim_boxes(&self) -> (Vec<Aabb>, Vec<Vec3>) {
         (0..self.len())
             .into_par_iter()

@@ -53,8 +53,9 @@ impl BinMapping {
     /// [`SplitCandidate`] gives), by one float comparison: with `x` the
     /// scaled coordinate, `min(trunc(max(x, 0)), bins - 1) < k` holds
     /// exactly when `x < k` for an integer `1 <= k <= bins - 1`. The lane is
-    /// a constant so the loop reads it without a spill (partitions were
-    /// 40% of the builder's time with the index and saturating cast).
+    /// a constant so the loop reads it without a spill; the indexed lane and
+    /// the saturating cast were the hottest instructions of the partition
+    /// loop (figures in `docs/performance.md`).
     #[inline(always)]
     pub fn goes_left<const AXIS: usize>(&self, c: Vec3A, split_bin: usize) -> bool {
         debug_assert!((1..self.bins).contains(&split_bin));

@@ -557,8 +557,10 @@ fn open_all(ctx: &Ctx, head: &mut [BuildRef], tail: &mut [BuildRef]) {
 /// Scans from both ends and swaps only misplaced pairs. The one-sided form
 /// (swap every "no" with the end, then test the slot again) rewrote and
 /// re-read the same 44-byte ref on each step, a store-forwarding stall per
-/// ref: 20% of the top-level build's own time on the cocoa temple
-/// (measured in the commit that introduced this).
+/// ref and the hottest instructions of the builder's own loop: the cocoa
+/// temple's re-braided top level took 9.8-11.4 ms with it, 8.4-9.1 ms
+/// without (`rebraid bench stk_cocoa_temple.glb --modes rebraided`,
+/// alternating the binaries).
 fn partition_in_place(list: &mut [BuildRef], pred: impl Fn(&BuildRef) -> bool) -> usize {
     let (mut i, mut j) = (0, list.len());
     loop {
