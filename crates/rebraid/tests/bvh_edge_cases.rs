@@ -214,6 +214,35 @@ fn exponentially_spaced_centroids() {
     }
 }
 
+/// Two groups of triangles whose centroids differ on x by the smallest
+/// subnormal: a binning scale of `bins / extent` overflows to infinity there
+/// (and `0 * inf` is NaN), and x is the axis a tie picks. The builder must
+/// still agree with itself on every split.
+#[test]
+fn centroids_a_subnormal_apart() {
+    let tiny = f32::from_bits(1);
+    let mut tris = Vec::new();
+    for i in 0..64 {
+        for (x, y0) in [(0.0, 0.0), (tiny, 10.0)] {
+            let y = y0 + i as f32 / 64.0;
+            tris.push([
+                Vec3::new(x, y, 0.0),
+                Vec3::new(x, y + 0.01, 0.0),
+                Vec3::new(x, y, 0.01),
+            ]);
+        }
+    }
+    let mesh = TriangleMesh::from_triangles(&tris).unwrap();
+    let bvh = build_with(&mesh, &BuildParams::default());
+    assert_depth_bounded(&bvh);
+    let rays: Vec<Ray> = tris
+        .iter()
+        .map(|t| Ray::infinite(Vec3::new(-1.0, t[0].y + 0.002, 0.002), Vec3::X))
+        .collect();
+    let tally = check_rays("subnormal apart", &mesh, &bvh, &rays);
+    assert!(tally.hits >= 100, "{tally:?}");
+}
+
 /// Rays with zero direction components, signed zeros, origins exactly on the
 /// cube's face planes and on its edges, and rays lying in a face's plane.
 #[test]

@@ -30,10 +30,17 @@ pub struct BinMapping {
 impl BinMapping {
     /// A mapping over centroid bounds. An axis of zero extent gets scale 0,
     /// which puts every centroid in bin 0: such an axis yields no split.
+    /// So does an extent so small (subnormal) that the scale would overflow:
+    /// an infinite scale makes `0 * inf = NaN` for the centroid at the
+    /// origin, on which [`BinMapping::goes_left`] and [`BinMapping::bin`]
+    /// would disagree.
     pub fn new(centroid_bounds: &Aabb, bins: usize) -> Self {
         let e = centroid_bounds.extent();
         let k = bins as f32 * (1.0 - 1.0e-5);
-        let s = |x: f32| if x > 0.0 { k / x } else { 0.0 };
+        let s = |x: f32| {
+            let s = k / x;
+            if x > 0.0 && s.is_finite() { s } else { 0.0 }
+        };
         Self {
             bins,
             origin: centroid_bounds.min.into(),
@@ -340,6 +347,22 @@ mod tests {
                     assert_eq!(map.goes_left::<2>(c, k), scalar[2] < k);
                 }
             }
+        }
+    }
+
+    /// Centroids a subnormal distance apart: no infinite scale (whose
+    /// `0 * inf` would be a NaN bin), the axis is simply unusable.
+    #[test]
+    fn subnormal_extent_is_unusable() {
+        let tiny = f32::from_bits(1); // the smallest subnormal
+        let cb = Aabb::new(Vec3::ZERO, Vec3::new(tiny, 1.0, 0.0));
+        let map = BinMapping::new(&cb, 32);
+        assert!(!map.axis_usable(0));
+        assert!(map.axis_usable(1));
+        assert!(map.scale.is_finite());
+        for x in [0.0, tiny] {
+            let c = Vec3A::new(x, 0.5, 0.0);
+            assert_eq!(map.bins3(c), [0, map.bin(c, 1), 0]);
         }
     }
 
