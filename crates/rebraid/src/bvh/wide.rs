@@ -191,33 +191,43 @@ impl<const W: usize> WideBvh<W> {
         let mut slot_binary = vec![[WIDE_EMPTY; W]];
         // (binary node to collapse, wide node to fill)
         let mut work = vec![(0usize, 0usize)];
-        let mut kids: Vec<usize> = Vec::with_capacity(W);
+        // Candidate children with the area by which the next one to expand
+        // is chosen (computed once per candidate; `-inf` for leaves, which
+        // are never expanded).
+        let mut kids: Vec<(usize, f32)> = Vec::with_capacity(W);
+        let candidate = |k: usize| {
+            let n = &bin[k];
+            let a = if n.is_leaf() {
+                f32::NEG_INFINITY
+            } else {
+                n.bounds().half_area()
+            };
+            (k, a)
+        };
         while let Some((b, w)) = work.pop() {
             kids.clear();
             if bin[b].is_leaf() {
                 // Only a leaf root gets here: one leaf child.
-                kids.push(b);
+                kids.push(candidate(b));
             } else {
                 let c = bin[b].index as usize;
-                kids.extend([c, c + 1]);
+                kids.extend([candidate(c), candidate(c + 1)]);
             }
             while kids.len() < W {
                 // The inner child of largest area (first of equals); areas
                 // may be infinite for huge boxes, never NaN for valid ones.
                 let mut best: Option<(usize, f32)> = None;
-                for (i, &k) in kids.iter().enumerate() {
-                    let n = &bin[k];
-                    let a = n.bounds().half_area();
-                    if !n.is_leaf() && best.is_none_or(|(_, ba)| a > ba) {
+                for (i, &(k, a)) in kids.iter().enumerate() {
+                    if !bin[k].is_leaf() && best.is_none_or(|(_, ba)| a > ba) {
                         best = Some((i, a));
                     }
                 }
                 let Some((i, _)) = best else { break };
-                let c = bin[kids[i]].index as usize;
-                kids[i] = c;
-                kids.insert(i + 1, c + 1);
+                let c = bin[kids[i].0].index as usize;
+                kids[i] = candidate(c);
+                kids.insert(i + 1, candidate(c + 1));
             }
-            for (slot, &k) in kids.iter().enumerate() {
+            for (slot, &(k, _)) in kids.iter().enumerate() {
                 let n = &bin[k];
                 let r = if n.is_leaf() {
                     encode_leaf(n.index, n.count)
