@@ -9,8 +9,8 @@ use common::*;
 use proptest::prelude::*;
 use rand::Rng;
 use rebraid::bvh::binning::MAX_BINS;
-use rebraid::bvh::{MAX_DEPTH, build_bvh};
-use rebraid::glam::{Quat, Vec3};
+use rebraid::bvh::{BinBox, MAX_DEPTH, build_bvh, build_bvh_aligned};
+use rebraid::glam::{Quat, Vec3, Vec3A};
 use rebraid::{Aabb, BuildParams, Bvh, MeshBvh, Ray, TriangleMesh};
 
 /// The flavours of input the builder must survive.
@@ -187,6 +187,36 @@ proptest! {
         prop_assert!(trees[0] == trees[1], "1 and 2 threads differ");
         prop_assert!(trees[0] == trees[2], "1 and 4 threads differ");
         check_structure(&trees[0], &boxes, &params)?;
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 12, ..ProptestConfig::default() })]
+
+    /// How the build is cut into tasks does not show in the result: every
+    /// parallel threshold (each task's subtree laid out by the final pass)
+    /// gives the same nodes in the same order, and the aligned entry point
+    /// gives what `build_bvh` gives.
+    #[test]
+    fn tree_is_independent_of_task_size(
+        kind in kind_strategy(),
+        n in 1usize..6_000,
+        seed in any::<u64>(),
+    ) {
+        let (boxes, centroids) = boxes_of(kind, n, seed);
+        let build = |parallel_threshold| {
+            let params = BuildParams { parallel_threshold, ..BuildParams::default() };
+            build_bvh(&boxes, &centroids, &params).unwrap()
+        };
+        let one_task = build(usize::MAX);
+        for threshold in [0, 7, 1024] {
+            prop_assert!(build(threshold) == one_task, "threshold {threshold} differs");
+        }
+        let aligned_boxes: Vec<BinBox> = boxes.iter().map(BinBox::from_aabb).collect();
+        let aligned_centroids: Vec<Vec3A> = centroids.iter().map(|&c| c.into()).collect();
+        let aligned =
+            build_bvh_aligned(&aligned_boxes, &aligned_centroids, &BuildParams::default()).unwrap();
+        prop_assert!(aligned == build(BuildParams::default().parallel_threshold));
     }
 }
 
