@@ -28,7 +28,7 @@ use divan::counter::ItemsCount;
 use divan::{Bencher, black_box};
 use rebraid::bvh::triangle4::{LeafHit, Triangle4, intersect_blocks};
 use rebraid::bvh::wide::{WIDE_EMPTY, decode_leaf, is_leaf_ref};
-use rebraid::bvh::{Kernel, WideMeshBvh, WideNode};
+use rebraid::bvh::{FmaSlab, Kernel, ROBUST_FAR, WideMeshBvh, WideNode};
 use rebraid::glam::Vec3;
 use rebraid::triangle::{WatertightRay, geometric_normal};
 use rebraid::{BuildParams, MeshBvh, Ray};
@@ -63,26 +63,21 @@ struct RayBox {
 /// `None` for a ray with a zero direction component (the experiment leaves
 /// those packets to the single-ray kernel, whose exact path handles them).
 fn ray_box(ray: &Ray) -> Option<RayBox> {
-    let inv = Vec3::ONE / ray.dir;
-    let oi = ray.origin * inv;
-    let pad = oi.abs() * (2.0 * f32::EPSILON);
-    let (n_off, f_off) = (oi + pad, oi - pad);
-    if !(inv.is_finite() && n_off.is_finite() && f_off.is_finite()) {
+    // The library kernel's own constants.
+    let slab = FmaSlab::new(ray.origin, ray.dir);
+    if !slab.is_finite() {
         return None;
     }
-    let near_plane = [0, 1, 2].map(|a| if inv[a] >= 0.0 { a } else { a + 3 });
-    let splat = |x: f32| -> __m256 { bytemuck::cast([x; 8]) };
+    let splat = |v: Vec3| -> [__m256; 3] { [v.x, v.y, v.z].map(|x| bytemuck::cast([x; 8])) };
     Some(RayBox {
-        near_plane,
-        far_plane: near_plane.map(|p| if p < 3 { p + 3 } else { p - 3 }),
-        inv: [0, 1, 2].map(|a| splat(inv[a])),
-        near_off: [0, 1, 2].map(|a| splat(n_off[a])),
-        far_off: [0, 1, 2].map(|a| splat(f_off[a])),
-        t_min: splat(ray.t_min),
+        near_plane: slab.near_plane,
+        far_plane: slab.far_plane,
+        inv: splat(slab.inv_dir),
+        near_off: splat(slab.near_offset),
+        far_off: splat(slab.far_offset),
+        t_min: bytemuck::cast([ray.t_min; 8]),
     })
 }
-
-const ROBUST_FAR: f32 = 1.0 + 2.0 * (3.0 * f32::EPSILON * 0.5) / (1.0 - 3.0 * f32::EPSILON * 0.5);
 
 /// The single-ray kernel's 8-wide box test: hit mask, and the entry
 /// distances with `+inf` in the lanes missed.

@@ -25,8 +25,7 @@ use divan::counter::ItemsCount;
 use divan::{Bencher, black_box};
 use rebraid::bvh::triangle4::{LeafHit, Triangle4, intersect_blocks};
 use rebraid::bvh::wide::{WIDE_EMPTY, decode_leaf, is_leaf_ref};
-use rebraid::bvh::{Kernel, WideMeshBvh, WideNode};
-use rebraid::glam::Vec3;
+use rebraid::bvh::{FmaSlab, Kernel, ROBUST_FAR, WideMeshBvh, WideNode};
 use rebraid::triangle::WatertightRay;
 use rebraid::{BuildParams, MeshBvh, Ray};
 
@@ -190,16 +189,13 @@ unsafe fn query_quantized<const ANY: bool, N: Node8>(
     ray: &Ray,
 ) -> Option<Option<LeafHit>> {
     use std::arch::x86_64::*;
-    let inv = Vec3::ONE / ray.dir;
-    let oi = ray.origin * inv;
-    let pad = oi.abs() * (2.0 * f32::EPSILON);
-    let (n_off, f_off) = (oi + pad, oi - pad);
-    if !(inv.is_finite() && n_off.is_finite() && f_off.is_finite()) {
+    // The library kernel's own constants.
+    let slab = FmaSlab::new(ray.origin, ray.dir);
+    if !slab.is_finite() {
         return None;
     }
-    let near_plane = [0, 1, 2].map(|a| if inv[a] >= 0.0 { a } else { a + 3 });
-    let far_plane = near_plane.map(|p| if p < 3 { p + 3 } else { p - 3 });
-    let robust_far = 1.0 + 2.0 * (3.0 * f32::EPSILON * 0.5) / (1.0 - 3.0 * f32::EPSILON * 0.5);
+    let (inv, n_off, f_off) = (slab.inv_dir, slab.near_offset, slab.far_offset);
+    let (near_plane, far_plane) = (slab.near_plane, slab.far_plane);
     let wray = WatertightRay::new(ray.origin, ray.dir);
     let mut t_max = ray.t_max;
     let mut best: Option<LeafHit> = None;
@@ -226,7 +222,7 @@ unsafe fn query_quantized<const ANY: bool, N: Node8>(
                     near = _mm256_max_ps(near, tn);
                     far = _mm256_min_ps(far, tf);
                 }
-                far = _mm256_mul_ps(far, _mm256_set1_ps(robust_far));
+                far = _mm256_mul_ps(far, _mm256_set1_ps(ROBUST_FAR));
                 let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(near, far);
                 let mut dist = [0.0f32; 8];
                 _mm256_storeu_ps(dist.as_mut_ptr(), near);
@@ -285,7 +281,7 @@ unsafe fn query_quantized<const ANY: bool, N: Node8>(
                 }
                 sp -= 1;
                 let (r, d) = stack[sp].assume_init();
-                if ANY || d <= t_max * robust_far {
+                if ANY || d <= t_max * ROBUST_FAR {
                     current = r;
                     break;
                 }

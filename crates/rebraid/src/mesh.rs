@@ -103,16 +103,14 @@ impl TriangleMesh {
             .unzip()
     }
 
-    /// One box and one centroid per triangle (box centres, as Embree bins by).
+    /// One box and one centroid per triangle (box centres, as Embree bins by):
+    /// [`TriangleMesh::prim_build_boxes`] as `Aabb`s and `Vec3`s.
     pub fn prim_boxes(&self) -> (Vec<Aabb>, Vec<Vec3>) {
-        (0..self.len())
-            .into_par_iter()
-            .with_min_len(4096)
-            .map(|i| {
-                let b = Aabb::from_points(&self.triangle(i));
-                (b, b.center())
-            })
-            .unzip()
+        let (boxes, centroids) = self.prim_build_boxes();
+        (
+            boxes.iter().map(|b| b.to_aabb()).collect(),
+            centroids.into_iter().map(Vec3::from).collect(),
+        )
     }
 }
 

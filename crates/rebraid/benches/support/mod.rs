@@ -50,22 +50,14 @@ pub fn case<'a, P: 'static>(
 /// 400 icospheres of 1,280 triangles scattered over it (512k).
 pub fn generated_scene() -> TriangleMesh {
     let mut r = common::rng(7);
-    let n = 500u32;
-    let mut positions = Vec::new();
-    for y in 0..=n {
-        for x in 0..=n {
-            let (fx, fy) = (x as f32, y as f32);
-            let h = 8.0 * (fx * 0.05).sin() * (fy * 0.037).cos() + r.gen_range(0.0..0.3);
-            positions.push(Vec3::new(fx, fy, h));
-        }
-    }
-    let id = |x: u32, y: u32| y * (n + 1) + x;
-    let mut indices = Vec::new();
-    for y in 0..n {
-        for x in 0..n {
-            indices.push([id(x, y), id(x + 1, y), id(x + 1, y + 1)]);
-            indices.push([id(x, y), id(x + 1, y + 1), id(x, y + 1)]);
-        }
+    // A 500 x 500 grid raised into hills (vertices in the grid's row order,
+    // which is also the order the random offsets are drawn in).
+    let TriangleMesh {
+        mut positions,
+        mut indices,
+    } = common::grid(500, 500);
+    for p in &mut positions {
+        p.z = 8.0 * (p.x * 0.05).sin() * (p.y * 0.037).cos() + r.gen_range(0.0..0.3);
     }
     for _ in 0..400 {
         let c = Vec3::new(

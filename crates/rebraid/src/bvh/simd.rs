@@ -38,14 +38,10 @@ use super::triangle4::{
     LeafHit, Triangle4, block_boxes, intersect_blocks, pack_triangle4, validate_blocks,
 };
 use super::wide::{WideBvh, WideNode, WideStats, decode_leaf, is_leaf_ref};
-use super::{BoxRay, BvhNode, MAX_DEPTH, TraversalCounters};
+use super::{BoxRay, BvhNode, MAX_DEPTH, ROBUST_FAR, TraversalCounters};
 use crate::mesh::MeshBvh;
 use crate::triangle::{WatertightRay, geometric_normal};
 use crate::{Error, Hit, INVALID_ID, Ray};
-
-/// The slab test's padding, the same constant as the binary traversal's
-/// (`1 + 2 * gamma(3)`, Ize 2013).
-const ROBUST_FAR: f32 = 1.0 + 2.0 * (3.0 * f32::EPSILON * 0.5) / (1.0 - 3.0 * f32::EPSILON * 0.5);
 
 /// Entries of a wide traversal stack. The stack only holds siblings of the
 /// nodes on the current path, at most `W - 1` per level; a wide inner node
@@ -139,9 +135,54 @@ impl<const W: usize> BoxTester<W> for ScalarTester {
     }
 }
 
+/// A ray's constants for the one-FMA slab test of the AVX2 kernel:
+/// per axis, a box plane's distance is `plane * inv_dir - offset`, with the
+/// near and far offsets `origin * inv_dir` padded outwards.
+///
+/// Why padded: `round(origin * inv_dir)` is within `|oi| * eps / 2` of the
+/// exact product; a pad of `2 |oi| eps` still exceeds that after the
+/// offsets' own rounding. The FMA's single rounding is relative and within
+/// the [`ROBUST_FAR`] margin, as the exact form's are. So the test never
+/// misses a box the exact sub-and-multiply test enters (unit-tested
+/// against it). Public so that the experiments in `benches/` use the same
+/// constants as the library's kernel.
+#[derive(Clone, Copy, Debug)]
+pub struct FmaSlab {
+    pub inv_dir: Vec3,
+    pub near_offset: Vec3,
+    pub far_offset: Vec3,
+    /// Index into [`WideNode::planes`] of each axis's near plane.
+    pub near_plane: [usize; 3],
+    /// Index into [`WideNode::planes`] of each axis's far plane.
+    pub far_plane: [usize; 3],
+}
+
+impl FmaSlab {
+    #[inline(always)]
+    pub fn new(origin: Vec3, dir: Vec3) -> Self {
+        let inv_dir = Vec3::ONE / dir;
+        let (near_plane, far_plane) = plane_order(inv_dir);
+        let oi = origin * inv_dir;
+        let pad = oi.abs() * (2.0 * f32::EPSILON);
+        Self {
+            inv_dir,
+            near_offset: oi + pad,
+            far_offset: oi - pad,
+            near_plane,
+            far_plane,
+        }
+    }
+
+    /// False for a zero direction component (or an overflowing offset):
+    /// such a ray needs the exact sub-and-multiply test with its NaN fix.
+    #[inline(always)]
+    pub fn is_finite(&self) -> bool {
+        self.inv_dir.is_finite() && self.near_offset.is_finite() && self.far_offset.is_finite()
+    }
+}
+
 /// Per-ray plane selection of the SIMD testers: the index into
 /// [`WideNode::planes`] of each axis's near and far plane.
-#[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
 fn plane_order(inv_dir: Vec3) -> ([usize; 3], [usize; 3]) {
     let mut near = [0, 1, 2];
     let mut far = [3, 4, 5];
@@ -157,7 +198,7 @@ fn plane_order(inv_dir: Vec3) -> ([usize; 3], [usize; 3]) {
 mod x86 {
     use core::arch::x86_64::*;
 
-    use super::{BoxTester, ROBUST_FAR, plane_order};
+    use super::{BoxTester, FmaSlab, ROBUST_FAR, plane_order};
     use crate::bvh::wide::WideNode;
     use glam::Vec3;
 
@@ -266,16 +307,7 @@ mod x86 {
         /// function).
         #[inline(always)]
         pub(super) unsafe fn new(origin: Vec3, dir: Vec3, t_min: f32) -> Self {
-            let inv = Vec3::ONE / dir;
-            let (near, far) = plane_order(inv);
-            let oi = origin * inv;
-            // `round(origin * inv)` is within `|oi| * eps / 2` of the exact
-            // product; a pad of `2 |oi| eps` still exceeds that after the
-            // offsets' own rounding. The FMA's single rounding is relative
-            // and within the `ROBUST_FAR` margin, as the exact form's are.
-            let pad = oi.abs() * (2.0 * f32::EPSILON);
-            let (n_off, f_off) = (oi + pad, oi - pad);
-            let exact = !(inv.is_finite() && n_off.is_finite() && f_off.is_finite());
+            let slab = FmaSlab::new(origin, dir);
             let splat = |v: Vec3| -> [__m256; 3] {
                 [
                     bytemuck::cast([v.x; 8]),
@@ -285,13 +317,13 @@ mod x86 {
             };
             Self {
                 origin: splat(origin),
-                inv_dir: splat(inv),
-                near_offset: splat(n_off),
-                far_offset: splat(f_off),
-                near,
-                far,
+                inv_dir: splat(slab.inv_dir),
+                near_offset: splat(slab.near_offset),
+                far_offset: splat(slab.far_offset),
+                near: slab.near_plane,
+                far: slab.far_plane,
                 t_min: bytemuck::cast([t_min; 8]),
-                exact,
+                exact: !slab.is_finite(),
             }
         }
     }

@@ -11,7 +11,8 @@ pub const TRAVERSAL_STACK: usize = MAX_DEPTH as usize;
 /// Robustness factor for the slab test: `t_far` is scaled by `1 + 2 * gamma(3)`
 /// (T. Ize, "Robust BVH Ray Traversal", JCGT 2(2), 2013) so that rounding in the
 /// box test never culls a box a hit lies in.
-const ROBUST_FAR: f32 = 1.0 + 2.0 * (3.0 * f32::EPSILON * 0.5) / (1.0 - 3.0 * f32::EPSILON * 0.5);
+pub const ROBUST_FAR: f32 =
+    1.0 + 2.0 * (3.0 * f32::EPSILON * 0.5) / (1.0 - 3.0 * f32::EPSILON * 0.5);
 
 /// A ray prepared for slab tests: origin and reciprocal direction.
 ///
