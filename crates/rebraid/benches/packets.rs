@@ -34,14 +34,7 @@ use rebraid::triangle::{WatertightRay, geometric_normal};
 use rebraid::{BuildParams, MeshBvh, Ray};
 
 fn main() {
-    if !Kernel::Avx2.is_available() {
-        eprintln!("SKIPPED: the packet kernel needs AVX2 and FMA");
-        return;
-    }
-    for scene in SCENES {
-        prepared(scene);
-    }
-    divan::main();
+    support::avx2_experiment_main("packet", &SCENES, prepared);
 }
 
 const SCENES: [&str; 3] = ["generated_1m", "openarena_oa_thor", "samurai_monastery"];

@@ -30,14 +30,7 @@ use rebraid::triangle::WatertightRay;
 use rebraid::{BuildParams, MeshBvh, Ray};
 
 fn main() {
-    if !Kernel::Avx2.is_available() {
-        eprintln!("SKIPPED: the quantised kernel needs AVX2 and FMA");
-        return;
-    }
-    for scene in SCENES {
-        prepared(scene);
-    }
-    divan::main();
+    support::avx2_experiment_main("quantised", &SCENES, prepared);
 }
 
 const SCENES: [&str; 3] = ["generated_1m", "openarena_oa_thor", "samurai_monastery"];

@@ -24,6 +24,25 @@ pub fn cached<P: Sync + 'static>(
         .or_insert_with(|| make().map(|p| &*Box::leak(Box::new(p))))
 }
 
+/// The `main` of an AVX2 experiment bench: skip with a message on CPUs
+/// without AVX2 and FMA; otherwise prepare (and so validate) every scene
+/// before `divan` times anything.
+#[allow(dead_code)] // only the experiment benches
+pub fn avx2_experiment_main<P: 'static>(
+    kernel: &str,
+    scenes: &[&'static str],
+    prepare: fn(&'static str) -> Option<&'static P>,
+) {
+    if !rebraid::bvh::Kernel::Avx2.is_available() {
+        eprintln!("SKIPPED: the {kernel} kernel needs AVX2 and FMA");
+        return;
+    }
+    for &scene in scenes {
+        prepare(scene);
+    }
+    divan::main();
+}
+
 /// Every `scene/variant` pair, as `divan` arguments.
 #[allow(dead_code)] // not every bench has variants
 pub fn cases(scenes: &[&str], variants: &[&str]) -> Vec<&'static str> {
