@@ -68,7 +68,8 @@ struct SceneOpts {
     /// Re-braiding budget: ref slots per initial ref (Embree: 2).
     #[arg(long)]
     budget_per_ref: Option<f32>,
-    /// Re-braiding budget: ref slots per primitive (Embree: 0.001).
+    /// Re-braiding budget: ref slots per primitive of the distinct objects
+    /// (instanced objects count once; Embree: 0.001).
     #[arg(long)]
     budget_per_prim: Option<f32>,
     /// Re-braiding budget: at least this many ref slots (Embree: 1000).

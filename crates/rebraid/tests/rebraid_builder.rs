@@ -52,6 +52,12 @@ fn budgets_and_thresholds_build_valid_reachable_trees_that_answer_right() {
         RefBudget::Spare(5),
         RebraidParams::default().budget,
         huge_budget(),
+        // The per-primitive term decides: distinct against world counts.
+        RefBudget::Scaled {
+            min: 0,
+            per_initial_ref: 0.0,
+            per_primitive: 0.5,
+        },
     ];
     let thresholds = [0.0f32, 0.05, 0.1, 0.5, 10.0];
     for seed in [1u64, 2] {
@@ -73,7 +79,9 @@ fn budgets_and_thresholds_build_valid_reachable_trees_that_answer_right() {
                 let st = rep.top.clone().unwrap();
                 assert_eq!(st, t.build_stats, "{what}");
                 let n = st.refs_initial;
-                let prims = model.world_triangles() as u64;
+                // The budget counts each object once, however often placed.
+                let prims = model.distinct_triangles() as u64;
+                assert!(prims < model.world_triangles() as u64, "{what}");
                 assert_eq!(st.capacity, budget.capacity(n, prims), "{what}: {st:?}");
                 assert_eq!(st.spare_used, st.refs_final - n, "{what}: {st:?}");
                 assert!(st.nodes_opened <= st.spare_used, "{what}: {st:?}");

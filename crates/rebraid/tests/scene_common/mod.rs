@@ -188,6 +188,14 @@ impl Model {
         self.placements().values().sum()
     }
 
+    /// Triangles of the distinct placed objects: an object placed directly
+    /// and by several instances counts once.
+    pub fn distinct_triangles(&self) -> usize {
+        let placed: std::collections::BTreeSet<u32> =
+            self.placements().keys().map(|&(obj, _)| obj).collect();
+        placed.iter().map(|o| self.objects[o].0.len()).sum()
+    }
+
     /// World-space triangles of every placement (degenerate ones dropped:
     /// they are never hit).
     pub fn world(&self) -> World {
