@@ -201,7 +201,17 @@ impl MeshBvh {
 
     /// Turn a leaf-order hit into a [`Hit`] with the mesh's primitive id.
     #[inline]
-    pub fn make_hit(&self, (t, u, v, k): (f32, f32, f32, u32)) -> Hit {
+    pub fn make_hit(&self, hit: (f32, f32, f32, u32)) -> Hit {
+        let mut h = self.make_hit_unnormalized(hit);
+        h.normal = h.normal.normalize_or_zero();
+        h
+    }
+
+    /// [`MeshBvh::make_hit`] with the geometric normal left at its length
+    /// (`(v1 - v0) x (v2 - v0)`), for callers that transform it before
+    /// normalising once (instance hits).
+    #[inline]
+    pub fn make_hit_unnormalized(&self, (t, u, v, k): (f32, f32, f32, u32)) -> Hit {
         let [a, b, c] = self.triangles[k as usize];
         Hit {
             t,
@@ -210,7 +220,7 @@ impl MeshBvh {
             prim_id: self.bvh.prim_indices[k as usize],
             object_id: INVALID_ID,
             instance_id: INVALID_ID,
-            normal: geometric_normal(a, b, c).normalize_or_zero(),
+            normal: geometric_normal(a, b, c),
         }
     }
 
