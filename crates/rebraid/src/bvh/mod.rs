@@ -3,6 +3,7 @@
 pub mod binning;
 mod build;
 mod node;
+pub mod occlusion_order;
 mod refit;
 pub mod simd;
 mod stats;

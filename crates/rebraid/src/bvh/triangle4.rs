@@ -31,6 +31,7 @@
 
 use glam::Vec3;
 
+use super::occlusion_order::{OcclusionStats, order_for_occlusion, triangle_miss_probability};
 use super::wide::{WIDE_EMPTY, WideBvh, decode_leaf, encode_leaf, is_leaf_ref};
 use crate::Aabb;
 use crate::triangle::{WatertightRay, intersect_triangle};
@@ -73,6 +74,23 @@ impl Triangle4 {
         self.slot[lane] = slot;
     }
 
+    /// Area of each lane's triangle (NaN for padding and collapsed lanes),
+    /// lane by lane in plain arrays so that the compiler vectorises it.
+    #[inline]
+    pub fn areas(&self) -> [f32; 4] {
+        let v = &self.v;
+        let edge = |i: usize| -> [[f32; 4]; 3] {
+            std::array::from_fn(|a| std::array::from_fn(|l| v[i][a][l] - v[0][a][l]))
+        };
+        let (e1, e2) = (edge(1), edge(2));
+        std::array::from_fn(|l| {
+            let x = e1[1][l] * e2[2][l] - e1[2][l] * e2[1][l];
+            let y = e1[2][l] * e2[0][l] - e1[0][l] * e2[2][l];
+            let z = e1[0][l] * e2[1][l] - e1[1][l] * e2[0][l];
+            0.5 * (x * x + y * y + z * z).sqrt()
+        })
+    }
+
     /// Vertices of lane `lane`.
     #[inline]
     pub fn triangle(&self, lane: usize) -> [Vec3; 3] {
@@ -93,42 +111,63 @@ pub fn pack_triangle4<const W: usize>(
     wide: &mut WideBvh<W>,
     triangles: &[[Vec3; 3]],
 ) -> Vec<Triangle4> {
+    pack_triangle4_with_misses(wide, triangles).0
+}
+
+/// [`pack_triangle4`], also returning for each block the probability that
+/// a line entering its leaf's box misses the block's triangles,
+/// `prod(1 - min(1, A / S))` over their areas `A` with `S` the leaf box's
+/// half area (see [`super::occlusion_order`]): computed here, while the
+/// triangles are at hand, rather than by reading the blocks again.
+pub fn pack_triangle4_with_misses<const W: usize>(
+    wide: &mut WideBvh<W>,
+    triangles: &[[Vec3; 3]],
+) -> (Vec<Triangle4>, Vec<f32>) {
     // Pass 1 (nodes only): give each leaf its blocks, rewrite its ref, and
-    // note each block's triangle range (first slot, count).
-    let mut sources: Vec<(u32, u32)> = Vec::with_capacity(triangles.len() / 2 + 1);
+    // note each block's triangle range (first slot, count) and the
+    // reciprocal of its leaf box's half area.
+    let mut sources: Vec<(u32, u32, f32)> = Vec::with_capacity(triangles.len() / 2 + 1);
     let mut next = 0u32;
     for node in &mut wide.nodes {
-        for r in &mut node.child {
-            if *r == WIDE_EMPTY || !is_leaf_ref(*r) {
+        for i in 0..W {
+            let r = node.child[i];
+            if r == WIDE_EMPTY || !is_leaf_ref(r) {
                 continue;
             }
-            let (first, count) = decode_leaf(*r);
+            let (first, count) = decode_leaf(r);
             let end = first + count;
-            sources.extend((first..end).step_by(4).map(|b| (b, (end - b).min(4))));
+            let h = node.child_bounds(i).half_area();
+            let inv_h = if h > 0.0 { 1.0 / h } else { f32::INFINITY };
+            sources.extend(
+                (first..end)
+                    .step_by(4)
+                    .map(|b| (b, (end - b).min(4), inv_h)),
+            );
             let n = count.div_ceil(4);
-            *r = encode_leaf(next, n);
+            node.child[i] = encode_leaf(next, n);
             next += n;
         }
     }
     // Pass 2: fill the blocks, one exact-size collect (in parallel for long
     // inputs; the result does not depend on the thread count).
-    let block = |&(first, count): &(u32, u32)| {
+    let block = |&(first, count, inv_h): &(u32, u32, f32)| {
         let mut b = Triangle4::EMPTY;
         for lane in 0..count {
             let k = first + lane;
             b.set(lane as usize, k, triangles[k as usize]);
         }
-        b
+        let m = b.areas().map(|a| triangle_miss_probability(a, inv_h));
+        (b, m[0] * m[1] * m[2] * m[3])
     };
-    let blocks: Vec<Triangle4> = if triangles.len() >= 1 << 15 {
+    let (blocks, misses): (Vec<Triangle4>, Vec<f32>) = if triangles.len() >= 1 << 15 {
         use rayon::prelude::*;
-        sources.par_iter().with_min_len(4096).map(block).collect()
+        sources.par_iter().with_min_len(4096).map(block).unzip()
     } else {
-        sources.iter().map(block).collect()
+        sources.iter().map(block).unzip()
     };
     debug_assert_eq!(blocks.len(), next as usize);
     wide.prim_count = blocks.len();
-    blocks
+    (blocks, misses)
 }
 
 /// Box of each block: the union of its triangles' boxes, taken from the
@@ -392,6 +431,17 @@ mod x86 {
     }
 }
 
+/// Occlusion statistics of the Triangle4 leaf `r` (see
+/// [`super::occlusion_order`]) from its blocks' miss probabilities (as
+/// [`pack_triangle4_with_misses`] gives them): one unit of cost per block.
+pub fn leaf_occlusion(block_misses: &[f32], r: u32) -> OcclusionStats {
+    let (first, count) = decode_leaf(r);
+    let miss: f32 = block_misses[first as usize..(first + count) as usize]
+        .iter()
+        .product();
+    OcclusionStats::leaf([1.0 - miss], count as f32)
+}
+
 /// An 8-wide tree over a [`crate::MeshBvh`]'s leaf-order triangles whose
 /// leaves are [`Triangle4`] blocks: the traversal layout of the flat BVH and
 /// of every object BVH (the binary `MeshBvh` stays the build, re-braiding
@@ -400,6 +450,13 @@ mod x86 {
 pub struct WideTriangleBvh {
     pub wide: WideBvh<8>,
     pub blocks: Vec<Triangle4>,
+    /// Occlusion statistics of each wide node's subtree (indexed like
+    /// `wide.nodes`), by which its slots are ordered; the top level orders
+    /// its own slots by them too.
+    pub occlusion: Vec<OcclusionStats>,
+    /// Per block, the probability that a line entering its leaf's box
+    /// misses its triangles (see [`pack_triangle4_with_misses`]).
+    pub block_misses: Vec<f32>,
 }
 
 impl WideTriangleBvh {
@@ -407,8 +464,14 @@ impl WideTriangleBvh {
     /// binary leaf is too large for the wide layout.
     pub fn from_mesh(mesh: &crate::MeshBvh) -> Result<Self, crate::Error> {
         let mut wide = WideBvh::from_bvh(&mesh.bvh)?;
-        let blocks = pack_triangle4(&mut wide, &mesh.triangles);
-        Ok(Self { wide, blocks })
+        let (blocks, block_misses) = pack_triangle4_with_misses(&mut wide, &mesh.triangles);
+        let occlusion = order_for_occlusion(&mut wide, |r, _| leaf_occlusion(&block_misses, r));
+        Ok(Self {
+            wide,
+            blocks,
+            occlusion,
+            block_misses,
+        })
     }
 
     /// Bytes of the nodes, maps and blocks.
@@ -416,11 +479,23 @@ impl WideTriangleBvh {
         self.wide.bytes() + std::mem::size_of_val(self.blocks.as_slice())
     }
 
-    /// Check the blocks against the leaf-order `triangles` and the tree
-    /// against the blocks' boxes.
+    /// Check the blocks against the leaf-order `triangles`, the tree
+    /// against the blocks' boxes, and the occlusion order: every node's
+    /// slots by non-increasing `p / c` with the stats recorded for them.
     pub fn validate(&self, triangles: &[[Vec3; 3]]) -> Result<(), String> {
         validate_blocks(&self.blocks, triangles)?;
-        self.wide.validate(&block_boxes(&self.blocks, triangles))
+        self.wide.validate(&block_boxes(&self.blocks, triangles))?;
+        if self.occlusion.len() != self.wide.nodes.len()
+            || self.block_misses.len() != self.blocks.len()
+        {
+            return Err("occlusion statistics do not cover the tree".into());
+        }
+        let mut copy = self.wide.clone();
+        let stats = order_for_occlusion(&mut copy, |r, _| leaf_occlusion(&self.block_misses, r));
+        if copy != self.wide || stats != self.occlusion {
+            return Err("slots are not in occlusion order".into());
+        }
+        Ok(())
     }
 }
 
@@ -577,6 +652,34 @@ mod tests {
         let mut bad = w.clone();
         bad.blocks[0].slot[0] = bad.blocks[1].slot[0];
         assert!(bad.validate(&bvh.triangles).is_err());
+        // Slots are in occlusion order and their binary maps moved along.
+        w.wide.validate_slot_maps(&bvh.bvh).unwrap();
+        let (n, i) = (0..w.wide.nodes.len())
+            .flat_map(|n| (1..w.wide.nodes[n].child_count()).map(move |i| (n, i)))
+            .find(|&(n, i)| {
+                let key = |s: usize| {
+                    let r = w.wide.nodes[n].child[s];
+                    let st = if is_leaf_ref(r) {
+                        leaf_occlusion(&w.block_misses, r)
+                    } else {
+                        w.occlusion[r as usize]
+                    };
+                    st.hit_probability / st.cost
+                };
+                key(i - 1) > key(i)
+            })
+            .expect("some node orders two children by their keys");
+        let mut bad = w.clone();
+        let node = &mut bad.wide.nodes[n];
+        let (a, b) = (node.child_bounds(i - 1), node.child_bounds(i));
+        let (ra, rb) = (node.child[i - 1], node.child[i]);
+        node.set_child(i - 1, &b, rb);
+        node.set_child(i, &a, ra);
+        bad.wide.slot_binary[n].swap(i - 1, i);
+        bad.wide.validate_slot_maps(&bvh.bvh).unwrap();
+        assert!(bad.validate(&bvh.triangles).is_err(), "order not checked");
+        bad.wide.slot_binary[n].swap(i - 1, i);
+        assert!(bad.wide.validate_slot_maps(&bvh.bvh).is_err());
         // An empty tree packs to nothing.
         let mut empty = WideBvh::<8>::default();
         assert!(pack_triangle4(&mut empty, &[]).is_empty());

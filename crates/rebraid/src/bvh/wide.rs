@@ -300,6 +300,39 @@ impl<const W: usize> WideBvh<W> {
         s
     }
 
+    /// Check the binary-node maps against the binary tree this was
+    /// collapsed from: each occupied slot names the binary node whose box
+    /// it holds (exactly), each inner child's wide node was collapsed from
+    /// that binary node, and leaf slots name binary leaves or subtrees.
+    /// (The re-braiding builder opens wide nodes through these maps, so
+    /// anything that reorders slots must move them along.)
+    pub fn validate_slot_maps(&self, binary: &Bvh) -> Result<(), String> {
+        if self.binary_of.len() != self.nodes.len() || self.slot_binary.len() != self.nodes.len() {
+            return Err("binary maps and nodes differ in length".into());
+        }
+        for (n, node) in self.nodes.iter().enumerate() {
+            for i in 0..node.child_count() {
+                let b = self.slot_binary[n][i];
+                let Some(bn) = binary.nodes.get(b as usize) else {
+                    return Err(format!("node {n} slot {i}: binary node {b} out of range"));
+                };
+                if bn.bounds() != node.child_bounds(i) {
+                    return Err(format!(
+                        "node {n} slot {i}: box differs from binary node {b}'s"
+                    ));
+                }
+                let r = node.child[i];
+                if !is_leaf_ref(r) && self.binary_of[r as usize] != b {
+                    return Err(format!(
+                        "node {n} slot {i}: child {r} was collapsed from binary node {}, slot says {b}",
+                        self.binary_of[r as usize]
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// Check the invariants the kernels rely on: every node reachable once,
     /// every primitive slot in exactly one leaf, occupied slots first and
     /// empty slots inverted (`+inf` / `-inf`), every child box inside the

@@ -433,7 +433,11 @@ fn distinct_object_prims(refs: &[BuildRef], src: &RefSources) -> u64 {
     let mut seen = vec![false; src.objects.len()];
     let mut prims = 0u64;
     for r in refs {
-        let Some(o) = src.objects.get(r.object as usize).and_then(|o| o.as_deref()) else {
+        let Some(o) = src
+            .objects
+            .get(r.object as usize)
+            .and_then(|o| o.as_deref())
+        else {
             continue;
         };
         if !std::mem::replace(&mut seen[r.object as usize], true) {

@@ -15,7 +15,8 @@ use std::sync::Arc;
 use glam::Affine3A;
 use rayon::prelude::*;
 
-use crate::bvh::triangle4::intersect_blocks;
+use crate::bvh::occlusion_order::{OcclusionStats, order_for_occlusion};
+use crate::bvh::triangle4::{intersect_blocks, leaf_occlusion};
 use crate::bvh::wide::{WIDE_EMPTY, decode_leaf, is_leaf_ref};
 use crate::bvh::{
     BoxRay, BoxTester, Bvh, BvhNode, Kernel, SahCosts, TRAVERSAL_STACK, TesterFactory,
@@ -255,6 +256,9 @@ pub struct InstanceXf {
     pub world_to_object: Affine3A,
     /// Sign of the determinant: a mirroring transform flips the winding.
     pub det_sign: f32,
+    /// How the transform scales areas on average, `|det|^(2/3)` (exact for
+    /// uniform scaling): occlusion estimates of opened refs use it.
+    pub area_scale: f32,
 }
 
 impl InstanceXf {
@@ -263,6 +267,7 @@ impl InstanceXf {
             object_to_world,
             world_to_object: object_to_world.inverse(),
             det_sign: object_to_world.matrix3.determinant().signum(),
+            area_scale: object_to_world.matrix3.determinant().abs().powf(2.0 / 3.0),
         }
     }
 
@@ -308,6 +313,49 @@ pub struct TopLevelAccel {
     pub kernel: Kernel,
     /// One [`RefEntry`] per ref, made with the accel.
     pub entries: Vec<RefEntry>,
+}
+
+/// Occlusion statistics of ref `r` seen from a top-level slot of box
+/// `slot_box` (see [`crate::bvh::occlusion_order`]): those of its object
+/// subtree, the hit probability scaled by the chance that a ray entering the
+/// slot box enters the subtree's (placed) box. Entering an instance costs
+/// about one more unit (transforming the ray, preparing its testers).
+fn ref_occlusion(
+    objects: &[Option<Arc<ObjectBvh>>],
+    instances: &[InstanceXf],
+    r: &TopRef,
+    slot_box: &Aabb,
+) -> OcclusionStats {
+    let Some(obj) = objects.get(r.object as usize).and_then(|o| o.as_deref()) else {
+        return OcclusionStats::EMPTY;
+    };
+    let node = &obj.nodes()[r.node as usize];
+    let local = node.bounds();
+    let w = obj
+        .wide_of
+        .get(r.node as usize)
+        .copied()
+        .unwrap_or(WIDE_EMPTY);
+    let mut st = match &obj.wide {
+        Some(wide) if w != WIDE_EMPTY && !is_leaf_ref(w) => wide.occlusion[w as usize],
+        Some(wide) if w != WIDE_EMPTY => leaf_occlusion(&wide.block_misses, w),
+        // No wide layout: the binary subtree's SAH cost, and no claim to
+        // occlude (visited last).
+        _ => OcclusionStats {
+            hit_probability: 0.0,
+            cost: obj.subtree_cost[r.node as usize].max(1.0),
+        },
+    };
+    let (placed_area, entry_cost) = match instances.get(r.instance as usize) {
+        Some(xf) if r.instance != INVALID_ID => (local.half_area() * xf.area_scale, 1.0),
+        _ => (local.half_area(), 0.0),
+    };
+    let slot_area = slot_box.half_area();
+    if slot_area > 0.0 && placed_area.is_finite() {
+        st.hit_probability *= (placed_area / slot_area).clamp(0.0, 1.0);
+    }
+    st.cost += entry_cost;
+    st
 }
 
 /// The best hit so far inside a top-level traversal: (t, u, v, leaf-order
@@ -407,7 +455,21 @@ impl TopLevelAccel {
         build_stats: TopLevelBuildStats,
         kernel: Kernel,
     ) -> Self {
-        let wide = WideBvh::<8>::from_bvh(&tree).ok().filter(|w| !w.is_empty());
+        let mut wide = WideBvh::<8>::from_bvh(&tree).ok().filter(|w| !w.is_empty());
+        if let Some(w) = &mut wide {
+            // Leaves index the refs directly (the tree has no index array).
+            w.prim_count = refs.len();
+            order_for_occlusion(w, |leaf, slot_box| {
+                let (first, count) = decode_leaf(leaf);
+                let (mut miss, mut cost) = (1.0f32, 0.0f32);
+                for r in &refs[first as usize..(first + count) as usize] {
+                    let st = ref_occlusion(&objects, &instances, r, slot_box);
+                    miss *= 1.0 - st.hit_probability;
+                    cost += st.cost;
+                }
+                OcclusionStats::leaf([1.0 - miss], cost)
+            });
+        }
         let entries = refs
             .par_iter()
             .with_min_len(4096)
@@ -626,7 +688,19 @@ impl TopLevelAccel {
         if let Some(i) = boxes.iter().position(|b| b.is_empty()) {
             return Err(format!("ref {i} has no object"));
         }
-        tree.validate(&boxes)
+        tree.validate(&boxes)?;
+        if let Some(wide) = &self.wide {
+            wide.validate(&boxes)?;
+        }
+        // The builder opens object BVHs through their wide slot maps.
+        for (i, obj) in self.objects.iter().enumerate() {
+            if let Some(w) = obj.as_deref().and_then(|o| o.wide.as_ref().map(|w| (o, w))) {
+                w.1.wide
+                    .validate_slot_maps(&w.0.mesh.bvh)
+                    .map_err(|e| format!("object {i}: {e}"))?;
+            }
+        }
+        Ok(())
     }
 
     /// Bytes of the top-level tree and refs (object BVHs not included).

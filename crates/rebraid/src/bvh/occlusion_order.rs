@@ -1,0 +1,295 @@
+//! Child order for occlusion rays: the RTSAH order.
+//!
+//! T. Ize, C. Hansen, "RTSAH Traversal Order for Occlusion Rays",
+//! Eurographics 2011. An occlusion (any-hit) query stops at the first hit,
+//! so the order in which it visits a node's hit children decides how much
+//! of the tree it sees before it is occluded; distance order, the right
+//! order for closest hits, is no better than any other here. The ray
+//! termination SAH estimates, for a ray that enters a box, the probability
+//! `p` that it hits something inside and the expected cost `c` of finding
+//! out; visiting children in decreasing `p / c` minimises the expected cost
+//! of a sequence of independent tests that each end the search with
+//! probability `p` (the classic ordering argument). The order is static:
+//! it is computed once per tree and stored as the slot order, which the
+//! occlusion kernels follow (slot order among the hit children; closest-hit
+//! queries sort by entry distance and use slot order only for ties).
+//!
+//! Estimates, for a ray entering a box with half area `S` (a random line
+//! through a convex box meets a flat triangle of area `A` inside it with
+//! probability `A / S`, after Cauchy's projection formula: mean projected
+//! areas are `S / 2` for the box and `A / 2` for the two-sided triangle):
+//! - a leaf: `p = 1 - prod(1 - min(1, A_j / S))` over its triangles,
+//!   `c` = its blocks' test cost;
+//! - a node with children `i` (box half areas `S_i`, entered with
+//!   probability `q_i = S_i / S`) in the chosen order:
+//!   `c = NODE_COST + sum_i q_i c_i prod_{j<i} (1 - q_j p_j)` and
+//!   `p = 1 - prod_i (1 - q_i p_i)` (independent children).
+//!
+//! Object and flat trees are ordered when they are packed (the blocks' miss
+//! probabilities are computed while the triangles are at hand, see
+//! [`super::triangle4::pack_triangle4_with_misses`]); the top level orders
+//! its slots by the stats of the object subtrees its refs enter
+//! (`TopLevelAccel::new`), so both levels agree on what occludes.
+//!
+//! Measured against the collapse's order (`rebraid bench SCENES --modes
+//! flat,rebraided --threads 1 --width 640 --height 360 --reps 3` on the
+//! shared scenes and `library --scale 1`, two alternations of the two
+//! binaries): re-braided shadow rays library +24-30% (10.6-10.8 -> 13.4-13.8
+//! Mrays/s), ravenbridge +4-7%, samurai, openarena and cocoa temple equal,
+//! nexuiz and 2CylinderEngine -3-5%; closest-hit rays change only where
+//! entry distances tie (rays starting inside several boxes): library
+//! primary +35-40%, flat samurai primary +12-16%, flat nexuiz primary -6%,
+//! diffuse equal to +9%. Builds +1-3% (the sweep and the areas). The
+//! session-3 experiments with a static order by box area alone (library
+//! shadow +60% but nexuiz -19%, engine -15%) show why the key must weigh
+//! what a box holds against what it costs.
+
+use super::wide::{WIDE_EMPTY, WideBvh, is_leaf_ref};
+use crate::Aabb;
+
+/// Cost of testing one wide node's child boxes, in the unit of one leaf
+/// block (four triangles) test.
+pub const NODE_COST: f32 = 1.0;
+
+/// What a ray entering a subtree's box can expect of it (see the module
+/// docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OcclusionStats {
+    /// Probability that the ray hits a primitive of the subtree.
+    pub hit_probability: f32,
+    /// Expected cost of an occlusion query through the subtree, in leaf
+    /// block tests.
+    pub cost: f32,
+}
+
+impl OcclusionStats {
+    /// Nothing to hit (an empty slot).
+    pub const EMPTY: Self = Self {
+        hit_probability: 0.0,
+        cost: NODE_COST,
+    };
+
+    /// Stats of a leaf whose primitives have the given hit probabilities.
+    pub fn leaf(probabilities: impl IntoIterator<Item = f32>, cost: f32) -> Self {
+        let miss: f32 = probabilities
+            .into_iter()
+            .map(|p| 1.0 - sanitize(p))
+            .product();
+        Self {
+            hit_probability: 1.0 - miss,
+            cost: cost.max(f32::MIN_POSITIVE),
+        }
+    }
+
+    /// The ordering key: termination probability per unit of cost.
+    #[inline]
+    fn key(&self) -> f32 {
+        self.hit_probability / self.cost
+    }
+}
+
+/// Probability that a line entering a box misses a flat triangle of area
+/// `area` inside it: `1 - min(1, area / S)` for the box's half area `S`,
+/// given as `inv_half_area = 1 / S` (infinite for a box without area, in
+/// which every line meets a triangle that has one). A NaN area (padding,
+/// collapsed triangles) misses.
+#[inline(always)]
+pub fn triangle_miss_probability(area: f32, inv_half_area: f32) -> f32 {
+    let p = area * inv_half_area;
+    if p >= 0.0 { 1.0 - p.min(1.0) } else { 1.0 }
+}
+
+/// Clamp to `[0, 1]`, NaN to 0.
+#[inline]
+fn sanitize(p: f32) -> f32 {
+    if p.is_nan() { 0.0 } else { p.clamp(0.0, 1.0) }
+}
+
+/// Reorder every node's occupied slots by decreasing `p / c` and return
+/// the stats of each node's subtree (indexed like `wide.nodes`).
+/// `leaf(reference, slot_box)` gives a leaf child's stats. Slot maps
+/// (`slot_binary`) move with their slots; the tree stays valid.
+///
+/// Children are stored after their parents (as [`WideBvh::from_bvh`]
+/// lays them out), so one reverse sweep sees every child first.
+pub fn order_for_occlusion<const W: usize>(
+    wide: &mut WideBvh<W>,
+    leaf: impl Fn(u32, &Aabb) -> OcclusionStats,
+) -> Vec<OcclusionStats> {
+    let mut stats = vec![OcclusionStats::EMPTY; wide.nodes.len()];
+    for n in (0..wide.nodes.len()).rev() {
+        let node = &wide.nodes[n];
+        // Every slot's half area and the union's, lane by lane (empty slots
+        // are inverted boxes: area 0, and neutral in the union).
+        let extent = |lo: &[f32; W], hi: &[f32; W]| -> [f32; W] {
+            std::array::from_fn(|i| (hi[i] - lo[i]).max(0.0))
+        };
+        let (ex, ey, ez) = (
+            extent(&node.min_x, &node.max_x),
+            extent(&node.min_y, &node.max_y),
+            extent(&node.min_z, &node.max_z),
+        );
+        let areas: [f32; W] =
+            std::array::from_fn(|i| ex[i] * ey[i] + ey[i] * ez[i] + ez[i] * ex[i]);
+        let span = |lo: &[f32; W], hi: &[f32; W]| {
+            let l = lo.iter().fold(f32::INFINITY, |a, &b| a.min(b));
+            let h = hi.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b));
+            (h - l).max(0.0)
+        };
+        let (ux, uy, uz) = (
+            span(&node.min_x, &node.max_x),
+            span(&node.min_y, &node.max_y),
+            span(&node.min_z, &node.max_z),
+        );
+        let parent_area = ux * uy + uy * uz + uz * ux;
+        // (key, stats, original slot) of each occupied slot, insertion-
+        // sorted by decreasing key (stable: equal keys keep the collapse's
+        // order).
+        let mut kids = [(0.0f32, OcclusionStats::EMPTY, 0usize); W];
+        let mut count = 0;
+        for i in 0..W {
+            let r = node.child[i];
+            if r == WIDE_EMPTY {
+                break;
+            }
+            let st = if is_leaf_ref(r) {
+                leaf(r, &node.child_bounds(i))
+            } else {
+                debug_assert!(r as usize > n, "children follow their parent");
+                stats[r as usize]
+            };
+            let item = (sanitize_key(st.key()), st, i);
+            let mut j = count;
+            while j > 0 && kids[j - 1].0 < item.0 {
+                kids[j] = kids[j - 1];
+                j -= 1;
+            }
+            kids[j] = item;
+            count += 1;
+        }
+        let kids = &kids[..count];
+        let inv_parent = if parent_area > 0.0 {
+            1.0 / parent_area
+        } else {
+            f32::INFINITY
+        };
+        let (mut miss, mut cost) = (1.0f32, NODE_COST);
+        for &(_, st, i) in kids {
+            // Probability of entering the child given the parent (SAH).
+            let q = if parent_area > 0.0 {
+                sanitize(areas[i] * inv_parent)
+            } else {
+                1.0
+            };
+            cost += miss * q * st.cost;
+            miss *= 1.0 - q * st.hit_probability;
+        }
+        stats[n] = OcclusionStats {
+            hit_probability: 1.0 - miss,
+            cost,
+        };
+        if kids.iter().enumerate().all(|(i, k)| k.2 == i) {
+            continue;
+        }
+        let old = *node;
+        let old_slots = wide.slot_binary[n];
+        for (i, &(.., from)) in kids.iter().enumerate() {
+            wide.nodes[n].set_child(i, &old.child_bounds(from), old.child[from]);
+            wide.slot_binary[n][i] = old_slots[from];
+        }
+    }
+    stats
+}
+
+/// Keys that are not numbers sort last.
+#[inline]
+fn sanitize_key(k: f32) -> f32 {
+    if k.is_nan() { f32::NEG_INFINITY } else { k }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bvh::wide::{WideNode, encode_leaf};
+    use glam::Vec3;
+
+    /// A root over three leaves: a sparse cloud in a large box, a dense wall
+    /// in a small one, and an empty-looking leaf; `p` per leaf by its ref.
+    fn tree() -> (WideBvh<8>, [Aabb; 3]) {
+        let boxes = [
+            Aabb::new(Vec3::ZERO, Vec3::splat(4.0)),
+            Aabb::new(Vec3::new(5.0, 0.0, 0.0), Vec3::new(5.1, 1.0, 1.0)),
+            Aabb::new(Vec3::new(0.0, 5.0, 0.0), Vec3::new(1.0, 6.0, 1.0)),
+        ];
+        let mut root = WideNode::<8>::EMPTY;
+        for (i, b) in boxes.iter().enumerate() {
+            root.set_child(i, b, encode_leaf(i as u32, 1));
+        }
+        let wide = WideBvh {
+            nodes: vec![root],
+            binary_of: vec![0],
+            slot_binary: vec![[10, 11, 12, u32::MAX, u32::MAX, u32::MAX, u32::MAX, u32::MAX]],
+            root_bounds: boxes.iter().fold(Aabb::EMPTY, |a, b| a.union(*b)),
+            prim_count: 3,
+        };
+        (wide, boxes)
+    }
+
+    fn leaf_stats(r: u32) -> OcclusionStats {
+        let (first, _) = crate::bvh::wide::decode_leaf(r);
+        // sparse: rarely hit, two blocks; wall: nearly always, one block;
+        // third: never.
+        let (p, c) = [(0.1, 2.0), (0.9, 1.0), (0.0, 1.0)][first as usize];
+        OcclusionStats::leaf([p], c)
+    }
+
+    #[test]
+    fn children_go_by_decreasing_hit_probability_per_cost() {
+        let (mut wide, boxes) = tree();
+        let stats = order_for_occlusion(&mut wide, |r, _| leaf_stats(r));
+        let node = &wide.nodes[0];
+        // Keys 0.9, 0.05, 0.0: wall, cloud, empty.
+        assert_eq!(
+            &node.child[..3],
+            &[encode_leaf(1, 1), encode_leaf(0, 1), encode_leaf(2, 1)]
+        );
+        assert_eq!(&wide.slot_binary[0][..3], &[11, 10, 12]);
+        assert_eq!(node.child_bounds(0), boxes[1]);
+        assert_eq!(node.child_bounds(1), boxes[0]);
+        assert_eq!(node.child_bounds(2), boxes[2]);
+        // The formulas, in that order.
+        let parent = wide.root_bounds.half_area();
+        let q: Vec<f32> = [1, 0, 2]
+            .iter()
+            .map(|&i| boxes[i].half_area() / parent)
+            .collect();
+        let (p, c) = ([0.9f32, 0.1, 0.0], [1.0f32, 2.0, 1.0]);
+        let cost = NODE_COST
+            + q[0] * c[0]
+            + (1.0 - q[0] * p[0]) * q[1] * c[1]
+            + (1.0 - q[0] * p[0]) * (1.0 - q[1] * p[1]) * q[2] * c[2];
+        let miss = (1.0 - q[0] * p[0]) * (1.0 - q[1] * p[1]) * (1.0 - q[2] * p[2]);
+        assert!((stats[0].cost - cost).abs() < 1e-5, "{stats:?} vs {cost}");
+        assert!((stats[0].hit_probability - (1.0 - miss)).abs() < 1e-6);
+        // A second pass changes nothing (the order is a fixed point).
+        let before = wide.clone();
+        assert_eq!(order_for_occlusion(&mut wide, |r, _| leaf_stats(r)), stats);
+        assert_eq!(wide, before);
+    }
+
+    #[test]
+    fn equal_keys_keep_their_order_and_odd_inputs_stay_in_range() {
+        let (mut wide, _) = tree();
+        let before = wide.clone();
+        order_for_occlusion(&mut wide, |_, _| OcclusionStats::leaf([0.5], 1.0));
+        assert_eq!(wide, before);
+        let odd = OcclusionStats::leaf([f32::NAN, 2.0, -1.0], 0.0);
+        assert_eq!(odd.hit_probability, 1.0);
+        assert!(odd.cost > 0.0);
+        assert_eq!(triangle_miss_probability(1.0, f32::INFINITY), 0.0);
+        assert_eq!(triangle_miss_probability(0.0, f32::INFINITY), 1.0);
+        assert_eq!(triangle_miss_probability(1.0, 0.25), 0.75);
+        assert_eq!(triangle_miss_probability(8.0, 0.25), 0.0);
+        assert_eq!(triangle_miss_probability(f32::NAN, 0.25), 1.0);
+    }
+}
