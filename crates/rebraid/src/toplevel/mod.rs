@@ -390,7 +390,9 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
             return;
         };
         let world = factory.make(ray);
-        let wray = WatertightRay::new(ray.origin, ray.dir);
+        // The world ray's shear only for refs placed directly (made on the
+        // first: scenes of instances never need it).
+        let mut wray: Option<WatertightRay> = None;
         // Prepared instance rays, direct-mapped by instance id: refs of a
         // few overlapping instances alternate along a ray.
         let mut cached: [Option<InstanceRay<F::Tester>>; INSTANCE_CACHE] = [None; INSTANCE_CACHE];
@@ -411,8 +413,10 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
                         continue;
                     };
                     let hit = if r.instance == INVALID_ID {
+                        let wray =
+                            wray.get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
                         obj.query_entry::<ANY, _>(
-                            r.wide, r.node, ray, &wray, &world, *t_max, &mut inner,
+                            r.wide, r.node, ray, wray, &world, *t_max, &mut inner,
                         )
                     } else {
                         let slot = &mut cached[r.instance as usize % INSTANCE_CACHE];
