@@ -358,6 +358,26 @@ fn ref_occlusion(
     st
 }
 
+/// Put the top level's slots in occlusion order (see
+/// [`crate::bvh::occlusion_order`]) by the stats of the refs under them.
+fn order_top_level(
+    wide: &mut WideBvh<8>,
+    refs: &[TopRef],
+    objects: &[Option<Arc<ObjectBvh>>],
+    instances: &[InstanceXf],
+) -> Vec<OcclusionStats> {
+    order_for_occlusion(wide, |leaf, slot_box| {
+        let (first, count) = decode_leaf(leaf);
+        let (mut miss, mut cost) = (1.0f32, 0.0f32);
+        for r in &refs[first as usize..(first + count) as usize] {
+            let st = ref_occlusion(objects, instances, r, slot_box);
+            miss *= 1.0 - st.hit_probability;
+            cost += st.cost;
+        }
+        OcclusionStats::leaf([1.0 - miss], cost)
+    })
+}
+
 /// The best hit so far inside a top-level traversal: (t, u, v, leaf-order
 /// triangle index within its object, ref index).
 type RefHit = (f32, f32, f32, u32, u32);
@@ -463,16 +483,7 @@ impl TopLevelAccel {
         if let Some(w) = &mut wide {
             // Leaves index the refs directly (the tree has no index array).
             w.prim_count = refs.len();
-            order_for_occlusion(w, |leaf, slot_box| {
-                let (first, count) = decode_leaf(leaf);
-                let (mut miss, mut cost) = (1.0f32, 0.0f32);
-                for r in &refs[first as usize..(first + count) as usize] {
-                    let st = ref_occlusion(&objects, &instances, r, slot_box);
-                    miss *= 1.0 - st.hit_probability;
-                    cost += st.cost;
-                }
-                OcclusionStats::leaf([1.0 - miss], cost)
-            });
+            order_top_level(w, &refs, &objects, &instances);
         }
         let entries = refs
             .par_iter()
@@ -695,12 +706,19 @@ impl TopLevelAccel {
         tree.validate(&boxes)?;
         if let Some(wide) = &self.wide {
             wide.validate(&boxes)?;
+            let mut ordered = wide.clone();
+            order_top_level(&mut ordered, &self.refs, &self.objects, &self.instances);
+            if ordered != *wide {
+                return Err("top-level slots are not in occlusion order".into());
+            }
         }
-        // The builder opens object BVHs through their wide slot maps.
+        // Object layouts: blocks, boxes and occlusion order, and the slot
+        // maps the builder opens object BVHs through.
         for (i, obj) in self.objects.iter().enumerate() {
-            if let Some(w) = obj.as_deref().and_then(|o| o.wide.as_ref().map(|w| (o, w))) {
-                w.1.wide
-                    .validate_slot_maps(&w.0.mesh.bvh)
+            let Some(obj) = obj.as_deref() else { continue };
+            if let Some(wide) = &obj.wide {
+                wide.validate(&obj.mesh.triangles)
+                    .and_then(|()| wide.wide.validate_slot_maps(&obj.mesh.bvh))
                     .map_err(|e| format!("object {i}: {e}"))?;
             }
         }
