@@ -75,8 +75,14 @@ impl OcclusionStats {
             .into_iter()
             .map(|p| 1.0 - sanitize(p))
             .product();
+        Self::from_miss(miss, cost)
+    }
+
+    /// Stats of a leaf (or a group of refs) that a ray misses with
+    /// probability `miss` (the product over its parts).
+    pub fn from_miss(miss: f32, cost: f32) -> Self {
         Self {
-            hit_probability: 1.0 - miss,
+            hit_probability: 1.0 - sanitize(miss),
             cost: cost.max(f32::MIN_POSITIVE),
         }
     }

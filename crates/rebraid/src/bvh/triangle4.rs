@@ -439,7 +439,7 @@ pub fn leaf_occlusion(block_misses: &[f32], r: u32) -> OcclusionStats {
     let miss: f32 = block_misses[first as usize..(first + count) as usize]
         .iter()
         .product();
-    OcclusionStats::leaf([1.0 - miss], count as f32)
+    OcclusionStats::from_miss(miss, count as f32)
 }
 
 /// An 8-wide tree over a [`crate::MeshBvh`]'s leaf-order triangles whose

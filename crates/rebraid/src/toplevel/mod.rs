@@ -374,7 +374,7 @@ fn order_top_level(
             miss *= 1.0 - st.hit_probability;
             cost += st.cost;
         }
-        OcclusionStats::leaf([1.0 - miss], cost)
+        OcclusionStats::from_miss(miss, cost)
     })
 }
 
