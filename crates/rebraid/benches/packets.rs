@@ -26,11 +26,11 @@ use std::arch::x86_64::*;
 
 use divan::counter::ItemsCount;
 use divan::{Bencher, black_box};
-use rebraid::bvh::triangle4::{LeafHit, Triangle4, intersect_blocks};
+use rebraid::bvh::triangle4::{LeafHit, Triangle4, block_hit_record, intersect_blocks};
 use rebraid::bvh::wide::{WIDE_EMPTY, decode_leaf, is_leaf_ref};
 use rebraid::bvh::{FmaSlab, Kernel, ROBUST_FAR, WideMeshBvh, WideNode};
 use rebraid::glam::Vec3;
-use rebraid::triangle::{WatertightRay, geometric_normal};
+use rebraid::triangle::WatertightRay;
 use rebraid::{BuildParams, MeshBvh, Ray};
 
 fn main() {
@@ -283,9 +283,9 @@ fn packet_hits(p: &Prepared, tile: &[Ray; 8]) -> [Option<(u32, u32)>; 8] {
     match unsafe { intersect_packet(&p.w8.wide.nodes, &p.w8.blocks, tile) } {
         Some(hits) => hits.map(|h| {
             h.map(|(t, _, _, k)| {
-                let [a, b, c] = p.w8.triangles[k as usize];
-                black_box(geometric_normal(a, b, c).normalize_or_zero());
-                (t.to_bits(), p.w8.prim_indices[k as usize])
+                let (prim, normal) = block_hit_record(&p.w8.blocks, k);
+                black_box(normal.normalize_or_zero());
+                (t.to_bits(), prim)
             })
         }),
         None => tile.each_ref().map(|r| {

@@ -90,6 +90,53 @@ fn random_instanced_scenes_match_brute_force_in_every_mode() {
     }
 }
 
+/// Object BVHs with leaves larger than a wide leaf holds keep the binary
+/// layout (the traversal's scalar fallback, whose hits name leaf-order
+/// slots rather than block lanes): hits, primitive ids and normals still
+/// match the brute force in every mode and with every kernel, for placed
+/// and instanced objects alike.
+#[test]
+fn objects_without_the_wide_layout_match_brute_force_in_every_mode() {
+    let mut rng = rng(41);
+    let model = random_model(
+        &mut rng,
+        &Gen {
+            clustered: 4,
+            scattered: 1,
+            grids: 1,
+            prototypes: 2,
+            instances: 10,
+            tris: 150,
+            mirror: true,
+        },
+    );
+    let world = model.world();
+    let rays = random_rays(&mut rng, &world, 1500, SCENE_LO, SCENE_HI);
+    for kernel in rebraid::bvh::Kernel::available() {
+        let mut p = params(AccelMode::Flat);
+        p.kernel = Some(kernel);
+        // Leaves of up to 40 triangles: larger than a wide leaf's 16, and
+        // the SAH makes them in some objects (a cheap intersection).
+        p.object_build.max_leaf_size = 40;
+        p.object_build.intersection_cost = 0.6;
+        let mut scene = model.to_scene(p.clone());
+        scene.set_mode(AccelMode::Rebraided);
+        scene.commit().unwrap();
+        let objects = &top(&scene).objects;
+        let binary = objects
+            .iter()
+            .flatten()
+            .filter(|o| o.wide.is_none())
+            .count();
+        assert!(
+            binary > 0 && binary < objects.iter().flatten().count(),
+            "{binary} of {} objects without the wide layout",
+            objects.len()
+        );
+        all_modes_vs_brute_with(&model, &rays, &format!("large leaves {kernel:?}"), p);
+    }
+}
+
 #[test]
 fn objects_without_instances_are_bit_identical_across_modes() {
     let mut rng = rng(7);

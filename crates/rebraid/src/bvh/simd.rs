@@ -35,12 +35,13 @@ use std::mem::MaybeUninit;
 use glam::Vec3;
 
 use super::triangle4::{
-    LeafHit, Triangle4, block_boxes, intersect_blocks, pack_triangle4, validate_blocks,
+    LeafHit, Triangle4, block_boxes, block_hit_record, intersect_blocks, pack_triangle4,
+    validate_blocks,
 };
 use super::wide::{WideBvh, WideNode, WideStats, decode_leaf, is_leaf_ref};
 use super::{BoxRay, BvhNode, MAX_DEPTH, ROBUST_FAR, TraversalCounters};
 use crate::mesh::MeshBvh;
-use crate::triangle::{WatertightRay, geometric_normal};
+use crate::triangle::WatertightRay;
 use crate::{Error, Hit, INVALID_ID, Ray};
 
 /// Entries of a wide traversal stack. The stack only holds siblings of the
@@ -484,10 +485,10 @@ pub struct WideMeshBvh<const W: usize> {
     pub wide: WideBvh<W>,
     /// The leaves' triangles, four to a block.
     pub blocks: Vec<Triangle4>,
-    /// Vertices of each triangle, in the binary tree's leaf order (for hit
-    /// normals and validation).
+    /// Vertices of each triangle, in the binary tree's leaf order (what
+    /// validation checks the blocks against; hits read the blocks).
     pub triangles: Vec<[Vec3; 3]>,
-    /// Mesh primitive id of each leaf-order slot.
+    /// Mesh primitive id of each leaf-order slot (for validation).
     pub prim_indices: Vec<u32>,
     /// Private so that it always names a kernel this CPU runs.
     kernel: Kernel,
@@ -498,7 +499,7 @@ impl<const W: usize> WideMeshBvh<W> {
     /// triangles; the kernel is [`Kernel::best`].
     pub fn from_mesh(mesh: &MeshBvh) -> Result<Self, Error> {
         let mut wide = WideBvh::from_bvh(&mesh.bvh)?;
-        let blocks = pack_triangle4(&mut wide, &mesh.triangles);
+        let blocks = pack_triangle4(&mut wide, &mesh.triangles, &mesh.bvh.prim_indices);
         Ok(Self {
             wide,
             blocks,
@@ -586,25 +587,28 @@ impl<const W: usize> WideMeshBvh<W> {
         if self.prim_indices.len() != self.triangles.len() {
             return Err("primitive ids and triangles differ in number".into());
         }
-        validate_blocks(&self.blocks, &self.triangles)?;
-        self.wide
-            .validate(&block_boxes(&self.blocks, &self.triangles))
+        validate_blocks(&self.blocks, &self.triangles, &self.prim_indices)?;
+        self.wide.validate(&block_boxes(
+            &self.blocks,
+            &self.triangles,
+            &self.prim_indices,
+        ))
     }
 
-    fn make_hit(&self, (t, u, v, k): (f32, f32, f32, u32)) -> Hit {
-        let [a, b, c] = self.triangles[k as usize];
+    fn make_hit(&self, (t, u, v, k): LeafHit) -> Hit {
+        let (prim_id, normal) = block_hit_record(&self.blocks, k);
         Hit {
             t,
             u,
             v,
-            prim_id: self.prim_indices[k as usize],
+            prim_id,
             object_id: INVALID_ID,
             instance_id: INVALID_ID,
-            normal: geometric_normal(a, b, c).normalize_or_zero(),
+            normal: normal.normalize_or_zero(),
         }
     }
 
-    /// The closest (or, with `ANY`, some) hit as (t, u, v, leaf-order slot).
+    /// The closest (or, with `ANY`, some) hit as (t, u, v, block lane).
     /// `kernel` must be available (checked by every caller).
     #[inline(always)]
     fn query<const ANY: bool>(&self, kernel: Kernel, ray: &Ray) -> Option<LeafHit> {

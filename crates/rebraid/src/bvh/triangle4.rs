@@ -21,9 +21,16 @@
 //!
 //! Degenerate triangles (stored collapsed to one point by
 //! [`crate::MeshBvh`]) and the padding of a partial block have NaN vertices,
-//! which no lane ever hits; their slot stays recorded (padding:
-//! [`TRIANGLE4_NO_SLOT`]) so that the blocks still account for every
+//! which no lane ever hits; their primitive id stays recorded (padding:
+//! [`TRIANGLE4_NO_PRIM`]) so that the blocks still account for every
 //! triangle.
+//!
+//! A block carries everything a hit record needs: each lane's primitive id
+//! beside its vertices, from which the geometric normal is computed. A leaf
+//! hit names its lane ([`LeafHit`]: block index times four plus lane), so
+//! finishing the hit reads the block the test has just loaded instead of
+//! the leaf-order triangle and primitive-id arrays, two dependent cache
+//! misses per incoherent ray (see `docs/performance.md`, session 5).
 //!
 //! The binary builder prices leaves by blocks when asked
 //! ([`super::BuildParams::leaf_block_size`]), as Embree's SAH does for its
@@ -36,42 +43,58 @@ use super::wide::{WIDE_EMPTY, WideBvh, decode_leaf, encode_leaf, is_leaf_ref};
 use crate::Aabb;
 use crate::triangle::{WatertightRay, intersect_triangle};
 
-/// Slot of a padding lane.
-pub const TRIANGLE4_NO_SLOT: u32 = u32::MAX;
+/// Primitive id of a padding lane.
+pub const TRIANGLE4_NO_PRIM: u32 = u32::MAX;
 
 /// Up to four triangles in SoA form: `v[vertex][axis][lane]`, and the
-/// leaf-order slot of each lane's triangle.
+/// primitive id of each lane's triangle (its index in the mesh, what a hit
+/// reports).
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[repr(C, align(16))]
 pub struct Triangle4 {
     pub v: [[[f32; 4]; 3]; 3],
-    pub slot: [u32; 4],
+    pub prim: [u32; 4],
 }
 
 const _: () = assert!(std::mem::size_of::<Triangle4>() == 160);
 const _: () = assert!(std::mem::align_of::<Triangle4>() == 16);
 
-/// A hit inside a leaf: (t, u, v, leaf-order slot).
+/// A hit inside a leaf: (t, u, v, hit reference). Over [`Triangle4`]
+/// blocks the reference is the lane, `4 * block + lane` (see
+/// [`block_hit_record`]); over a binary tree's leaves it is the leaf-order
+/// slot.
 pub type LeafHit = (f32, f32, f32, u32);
+
+/// The primitive id and the geometric normal, `(v1 - v0) x (v2 - v0)` at its
+/// length, of the block lane `lane_ref` (`4 * block + lane`, as the block
+/// kernels report hits): bit for bit what the leaf-order triangle gives, as
+/// the block holds its exact vertices.
+#[inline(always)]
+pub fn block_hit_record(blocks: &[Triangle4], lane_ref: u32) -> (u32, Vec3) {
+    let b = &blocks[(lane_ref / 4) as usize];
+    let lane = (lane_ref % 4) as usize;
+    let [p0, p1, p2] = b.triangle(lane);
+    (b.prim[lane], crate::triangle::geometric_normal(p0, p1, p2))
+}
 
 impl Triangle4 {
     /// Four padding lanes.
     pub const EMPTY: Self = Self {
         v: [[[f32::NAN; 4]; 3]; 3],
-        slot: [TRIANGLE4_NO_SLOT; 4],
+        prim: [TRIANGLE4_NO_PRIM; 4],
     };
 
-    /// Put triangle `tri` (leaf-order slot `slot`) in lane `lane`; a
-    /// triangle collapsed to one point gets NaN vertices (never hit).
+    /// Put triangle `tri` (primitive id `prim`) in lane `lane`; a triangle
+    /// collapsed to one point gets NaN vertices (never hit).
     #[inline]
-    pub fn set(&mut self, lane: usize, slot: u32, tri: [Vec3; 3]) {
+    pub fn set(&mut self, lane: usize, prim: u32, tri: [Vec3; 3]) {
         let collapsed = tri[0] == tri[1] && tri[1] == tri[2];
         for (i, p) in tri.iter().enumerate() {
             for axis in 0..3 {
                 self.v[i][axis][lane] = if collapsed { f32::NAN } else { p[axis] };
             }
         }
-        self.slot[lane] = slot;
+        self.prim[lane] = prim;
     }
 
     /// Area of each lane's triangle (NaN for padding and collapsed lanes),
@@ -103,15 +126,17 @@ impl Triangle4 {
 /// Store the triangles of every leaf of `wide` as [`Triangle4`] blocks and
 /// rewrite each leaf reference to name its blocks (first block, block
 /// count) instead of its triangle slots. `triangles` are the leaf-order
-/// triangles the leaves index. Blocks follow the node array's order, so a
+/// triangles the leaves index and `prim_indices` their primitive ids (the
+/// BVH's index array), which the blocks store. Blocks follow the node array's order, so a
 /// node's leaves lie close together. Afterwards `wide.prim_count` is the
 /// number of blocks (what [`WideBvh::validate`] checks against, with
 /// [`block_boxes`]).
 pub fn pack_triangle4<const W: usize>(
     wide: &mut WideBvh<W>,
     triangles: &[[Vec3; 3]],
+    prim_indices: &[u32],
 ) -> Vec<Triangle4> {
-    pack_triangle4_with_misses(wide, triangles).0
+    pack_triangle4_with_misses(wide, triangles, prim_indices).0
 }
 
 /// [`pack_triangle4`], also returning for each block the probability that
@@ -122,7 +147,9 @@ pub fn pack_triangle4<const W: usize>(
 pub fn pack_triangle4_with_misses<const W: usize>(
     wide: &mut WideBvh<W>,
     triangles: &[[Vec3; 3]],
+    prim_indices: &[u32],
 ) -> (Vec<Triangle4>, Vec<f32>) {
+    assert_eq!(triangles.len(), prim_indices.len(), "one id per triangle");
     // Pass 1 (nodes only): give each leaf its blocks, rewrite its ref, and
     // note each block's triangle range (first slot, count) and the
     // reciprocal of its leaf box's half area.
@@ -154,7 +181,11 @@ pub fn pack_triangle4_with_misses<const W: usize>(
         let mut b = Triangle4::EMPTY;
         for lane in 0..count {
             let k = first + lane;
-            b.set(lane as usize, k, triangles[k as usize]);
+            b.set(
+                lane as usize,
+                prim_indices[k as usize],
+                triangles[k as usize],
+            );
         }
         let m = b.areas().map(|a| triangle_miss_probability(a, inv_h));
         (b, m[0] * m[1] * m[2] * m[3])
@@ -170,15 +201,36 @@ pub fn pack_triangle4_with_misses<const W: usize>(
     (blocks, misses)
 }
 
+/// Leaf-order slot of each primitive id: the inverse of a BVH's index
+/// array, or an error when it is not a permutation.
+fn slots_of_prims(prim_indices: &[u32]) -> Result<Vec<u32>, String> {
+    let mut slots = vec![u32::MAX; prim_indices.len()];
+    for (s, &p) in prim_indices.iter().enumerate() {
+        match slots.get_mut(p as usize) {
+            Some(x) if *x == u32::MAX => *x = s as u32,
+            Some(_) => return Err(format!("primitive {p} at two slots")),
+            None => return Err(format!("slot {s}: primitive {p} out of range")),
+        }
+    }
+    Ok(slots)
+}
+
 /// Box of each block: the union of its triangles' boxes, taken from the
-/// leaf-order `triangles` by slot (so degenerate lanes count too).
-pub fn block_boxes(blocks: &[Triangle4], triangles: &[[Vec3; 3]]) -> Vec<Aabb> {
+/// leaf-order `triangles` through the lanes' primitive ids (so degenerate
+/// lanes count too). `prim_indices` must be a permutation (checked by
+/// [`validate_blocks`]; lanes it does not name add nothing).
+pub fn block_boxes(
+    blocks: &[Triangle4],
+    triangles: &[[Vec3; 3]],
+    prim_indices: &[u32],
+) -> Vec<Aabb> {
+    let slots = slots_of_prims(prim_indices).unwrap_or_default();
     blocks
         .iter()
         .map(|b| {
-            b.slot
+            b.prim
                 .iter()
-                .filter(|&&s| s != TRIANGLE4_NO_SLOT)
+                .filter_map(|&p| slots.get(p as usize))
                 .fold(Aabb::EMPTY, |acc, &s| {
                     acc.union(Aabb::from_points(&triangles[s as usize]))
                 })
@@ -187,23 +239,31 @@ pub fn block_boxes(blocks: &[Triangle4], triangles: &[[Vec3; 3]]) -> Vec<Aabb> {
 }
 
 /// Check that the blocks hold exactly the leaf-order triangles, each once,
-/// in its recorded slot (collapsed ones as NaN).
-pub fn validate_blocks(blocks: &[Triangle4], triangles: &[[Vec3; 3]]) -> Result<(), String> {
+/// with its primitive id from `prim_indices` (collapsed ones as NaN).
+pub fn validate_blocks(
+    blocks: &[Triangle4],
+    triangles: &[[Vec3; 3]],
+    prim_indices: &[u32],
+) -> Result<(), String> {
+    if triangles.len() != prim_indices.len() {
+        return Err("one primitive id per triangle expected".into());
+    }
+    let slots = slots_of_prims(prim_indices)?;
     let mut seen = vec![false; triangles.len()];
     for (i, b) in blocks.iter().enumerate() {
         for lane in 0..4 {
-            let s = b.slot[lane];
-            if s == TRIANGLE4_NO_SLOT {
+            let p = b.prim[lane];
+            if p == TRIANGLE4_NO_PRIM {
                 continue;
             }
-            let Some(tri) = triangles.get(s as usize) else {
-                return Err(format!("block {i} lane {lane}: slot {s} out of range"));
+            let Some(&s) = slots.get(p as usize) else {
+                return Err(format!("block {i} lane {lane}: primitive {p} out of range"));
             };
             if std::mem::replace(&mut seen[s as usize], true) {
-                return Err(format!("slot {s} in two blocks"));
+                return Err(format!("primitive {p} in two blocks"));
             }
             let mut expect = Triangle4::EMPTY;
-            expect.set(lane, s, *tri);
+            expect.set(lane, p, triangles[s as usize]);
             let (got, want) = (b.triangle(lane), expect.triangle(lane));
             let same = got
                 .iter()
@@ -211,20 +271,21 @@ pub fn validate_blocks(blocks: &[Triangle4], triangles: &[[Vec3; 3]]) -> Result<
                 .all(|(g, w)| g.to_array().map(f32::to_bits) == w.to_array().map(f32::to_bits));
             if !same {
                 return Err(format!(
-                    "block {i} lane {lane}: vertices differ from slot {s}"
+                    "block {i} lane {lane}: vertices differ from primitive {p}"
                 ));
             }
         }
     }
     match seen.iter().position(|s| !s) {
-        Some(s) => Err(format!("slot {s} in no block")),
+        Some(s) => Err(format!("primitive {} in no block", prim_indices[s])),
         None => Ok(()),
     }
 }
 
 /// Intersect the blocks `first .. first + count` (one wide leaf): shrinks
-/// `t_max` and records the closest hit in `best` (equal distances keep the
-/// earlier triangle, also against a `best` from an earlier leaf), or with
+/// `t_max` and records the closest hit in `best`, naming its lane as
+/// `4 * block + lane` (equal distances keep the earlier triangle, also
+/// against a `best` from an earlier leaf), or with
 /// `ANY` records some hit and returns `true` (stop). `simd` selects the SSE
 /// lanes (x86-64) over the scalar loop; both give the same answers.
 #[allow(clippy::too_many_arguments)] // the hot path: plain values
@@ -239,47 +300,53 @@ pub fn intersect_blocks<const ANY: bool>(
     best: &mut Option<LeafHit>,
     simd: bool,
 ) -> bool {
-    for b in &blocks[first as usize..(first + count) as usize] {
+    for (i, b) in blocks[first as usize..(first + count) as usize]
+        .iter()
+        .enumerate()
+    {
+        let bi = first + i as u32;
         #[cfg(target_arch = "x86_64")]
         if simd {
             // SAFETY: SSE2 is part of the x86-64 baseline.
             let lanes = unsafe { x86::lanes(b, wray, t_min, *t_max) };
-            if take_lanes::<ANY>(b, lanes, wray, t_min, t_max, best) {
+            if take_lanes::<ANY>(b, bi * 4, lanes, wray, t_min, t_max, best) {
                 return true;
             }
             continue;
         }
         let _ = simd;
-        if scalar_block::<ANY>(b, wray, t_min, t_max, best) {
+        if scalar_block::<ANY>(b, bi * 4, wray, t_min, t_max, best) {
             return true;
         }
     }
     false
 }
 
-/// The reference: the scalar watertight test lane by lane, in lane order.
+/// The reference: the scalar watertight test lane by lane, in lane order;
+/// hits are named `lane0 + lane`.
 #[inline(always)]
 fn scalar_block<const ANY: bool>(
     b: &Triangle4,
+    lane0: u32,
     wray: &WatertightRay,
     t_min: f32,
     t_max: &mut f32,
     best: &mut Option<LeafHit>,
 ) -> bool {
     for lane in 0..4 {
-        let slot = b.slot[lane];
-        if slot == TRIANGLE4_NO_SLOT {
+        if b.prim[lane] == TRIANGLE4_NO_PRIM {
             break;
         }
         let [p0, p1, p2] = b.triangle(lane);
         if let Some((t, u, v)) = intersect_triangle(wray, p0, p1, p2, t_min, *t_max) {
+            let k = lane0 + lane as u32;
             if ANY {
-                *best = Some((t, u, v, slot));
+                *best = Some((t, u, v, k));
                 return true;
             }
             if best.is_none_or(|h| t < h.0) {
                 *t_max = t;
-                *best = Some((t, u, v, slot));
+                *best = Some((t, u, v, k));
             }
         }
     }
@@ -297,6 +364,7 @@ type Lanes = (u32, u32, [f32; 4], [f32; 4], [f32; 4]);
 #[inline(always)]
 fn take_lanes<const ANY: bool>(
     b: &Triangle4,
+    lane0: u32,
     (hits, scalar, t, u, v): Lanes,
     wray: &WatertightRay,
     t_min: f32,
@@ -317,14 +385,14 @@ fn take_lanes<const ANY: bool>(
             Some((t[lane], u[lane], v[lane]))
         };
         let Some((t, u, v)) = hit else { continue };
-        let slot = b.slot[lane];
+        let k = lane0 + lane as u32;
         if ANY {
-            *best = Some((t, u, v, slot));
+            *best = Some((t, u, v, k));
             return true;
         }
         if best.is_none_or(|h| t < h.0) {
             *t_max = t;
-            *best = Some((t, u, v, slot));
+            *best = Some((t, u, v, k));
         }
     }
     false
@@ -464,7 +532,8 @@ impl WideTriangleBvh {
     /// binary leaf is too large for the wide layout.
     pub fn from_mesh(mesh: &crate::MeshBvh) -> Result<Self, crate::Error> {
         let mut wide = WideBvh::from_bvh(&mesh.bvh)?;
-        let (blocks, block_misses) = pack_triangle4_with_misses(&mut wide, &mesh.triangles);
+        let (blocks, block_misses) =
+            pack_triangle4_with_misses(&mut wide, &mesh.triangles, &mesh.bvh.prim_indices);
         let occlusion = order_for_occlusion(&mut wide, |r, _| leaf_occlusion(&block_misses, r));
         Ok(Self {
             wide,
@@ -479,12 +548,15 @@ impl WideTriangleBvh {
         self.wide.bytes() + std::mem::size_of_val(self.blocks.as_slice())
     }
 
-    /// Check the blocks against the leaf-order `triangles`, the tree
-    /// against the blocks' boxes, and the occlusion order: every node's
-    /// slots by non-increasing `p / c` with the stats recorded for them.
-    pub fn validate(&self, triangles: &[[Vec3; 3]]) -> Result<(), String> {
-        validate_blocks(&self.blocks, triangles)?;
-        self.wide.validate(&block_boxes(&self.blocks, triangles))?;
+    /// Check the blocks against the mesh's leaf-order triangles and
+    /// primitive ids, the tree against the blocks' boxes, and the occlusion
+    /// order: every node's slots by non-increasing `p / c` with the stats
+    /// recorded for them.
+    pub fn validate(&self, mesh: &crate::MeshBvh) -> Result<(), String> {
+        let (triangles, prims) = (&mesh.triangles, &mesh.bvh.prim_indices);
+        validate_blocks(&self.blocks, triangles, prims)?;
+        self.wide
+            .validate(&block_boxes(&self.blocks, triangles, prims))?;
         if self.occlusion.len() != self.wide.nodes.len()
             || self.block_misses.len() != self.blocks.len()
         {
@@ -640,7 +712,7 @@ mod tests {
         let mesh = TriangleMesh { positions, indices };
         let bvh = MeshBvh::build(&mesh, &BuildParams::default()).unwrap();
         let w = WideTriangleBvh::from_mesh(&bvh).unwrap();
-        w.validate(&bvh.triangles).unwrap();
+        w.validate(&bvh).unwrap();
         assert_eq!(w.wide.prim_count, w.blocks.len());
         // Leaves of up to 8 triangles: at most two blocks each, and no more
         // blocks than leaves * 2.
@@ -648,10 +720,17 @@ mod tests {
         assert!(w.blocks.len() >= leaves && w.blocks.len() <= 2 * leaves);
         let mut bad = w.clone();
         bad.blocks[0].v[0][0][0] += 1.0;
-        assert!(bad.validate(&bvh.triangles).is_err());
+        assert!(bad.validate(&bvh).is_err());
         let mut bad = w.clone();
-        bad.blocks[0].slot[0] = bad.blocks[1].slot[0];
-        assert!(bad.validate(&bvh.triangles).is_err());
+        bad.blocks[0].prim[0] = bad.blocks[1].prim[0];
+        assert!(bad.validate(&bvh).is_err());
+        // A lane whose id names another triangle (ids swapped between two
+        // blocks: each id still appears once).
+        let mut bad = w.clone();
+        let (p0, p1) = (bad.blocks[0].prim[0], bad.blocks[1].prim[0]);
+        bad.blocks[0].prim[0] = p1;
+        bad.blocks[1].prim[0] = p0;
+        assert!(bad.validate(&bvh).is_err());
         // Slots are in occlusion order and their binary maps moved along.
         w.wide.validate_slot_maps(&bvh.bvh).unwrap();
         let (n, i) = (0..w.wide.nodes.len())
@@ -677,11 +756,11 @@ mod tests {
         node.set_child(i, &a, ra);
         bad.wide.slot_binary[n].swap(i - 1, i);
         bad.wide.validate_slot_maps(&bvh.bvh).unwrap();
-        assert!(bad.validate(&bvh.triangles).is_err(), "order not checked");
+        assert!(bad.validate(&bvh).is_err(), "order not checked");
         bad.wide.slot_binary[n].swap(i - 1, i);
         assert!(bad.wide.validate_slot_maps(&bvh.bvh).is_err());
         // An empty tree packs to nothing.
         let mut empty = WideBvh::<8>::default();
-        assert!(pack_triangle4(&mut empty, &[]).is_empty());
+        assert!(pack_triangle4(&mut empty, &[], &[]).is_empty());
     }
 }

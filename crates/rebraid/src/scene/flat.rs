@@ -6,8 +6,9 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
+use crate::bvh::triangle4::block_hit_record;
 use crate::bvh::{BuildParams, Kernel, TraversalCounters, WideTriangleBvh, query_subtree};
-use crate::{Error, Hit, MeshBvh, Ray, TriangleMesh};
+use crate::{Error, Hit, INVALID_ID, MeshBvh, Ray, TriangleMesh};
 
 /// Where a triangle of the flat BVH came from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -104,7 +105,17 @@ impl FlatAccel {
                     ray.t_max,
                     counters,
                 )?;
-                Some(self.map_hit(self.bvh.make_hit(h)))
+                let (t, u, v, k) = h;
+                let (prim_id, normal) = block_hit_record(&w.blocks, k);
+                Some(self.map_hit(Hit {
+                    t,
+                    u,
+                    v,
+                    prim_id,
+                    object_id: INVALID_ID,
+                    instance_id: INVALID_ID,
+                    normal: normal.normalize_or_zero(),
+                }))
             }
         }
     }

@@ -16,7 +16,7 @@ use glam::Affine3A;
 use rayon::prelude::*;
 
 use crate::bvh::occlusion_order::{OcclusionStats, order_for_occlusion};
-use crate::bvh::triangle4::{intersect_blocks, leaf_occlusion};
+use crate::bvh::triangle4::{block_hit_record, intersect_blocks, leaf_occlusion};
 use crate::bvh::wide::{WIDE_EMPTY, decode_leaf, is_leaf_ref};
 use crate::bvh::{
     BoxRay, BoxTester, Bvh, BvhNode, Kernel, SahCosts, TRAVERSAL_STACK, TesterFactory,
@@ -84,6 +84,22 @@ impl ObjectBvh {
         };
     }
 
+    /// Primitive id and geometric normal (at its length) of a hit that
+    /// [`ObjectBvh::query_entry`] reported for the wide reference `w`: a
+    /// block lane when `w` names a wide node or leaf (the record comes from
+    /// the block the test read), a leaf-order slot of the binary tree when
+    /// `w` is `WIDE_EMPTY` (the binary fallback).
+    #[inline(always)]
+    pub fn hit_record(&self, w: u32, k: u32) -> (u32, glam::Vec3) {
+        match &self.wide {
+            Some(wide) if w != WIDE_EMPTY => block_hit_record(&wide.blocks, k),
+            _ => {
+                let h = self.mesh.make_hit_unnormalized((0.0, 0.0, 0.0, k));
+                (h.prim_id, h.normal)
+            }
+        }
+    }
+
     /// The wide node collapsed from binary inner node `node`, if any.
     #[inline(always)]
     pub fn wide_node(&self, node: u32) -> Option<u32> {
@@ -139,7 +155,8 @@ impl ObjectBvh {
 
     /// The closest hit (or, with `ANY`, some hit) within `[ray.t_min, t_max]`
     /// in the subtree of binary node `node`, whose box the caller has tested
-    /// (a top-level leaf), as (t, u, v, leaf-order slot). `w` is the node's
+    /// (a top-level leaf), as (t, u, v, hit reference: see
+    /// [`ObjectBvh::hit_record`]). `w` is the node's
     /// wide reference (`wide_of[node]`, or `WIDE_EMPTY`), which the top level
     /// stores per ref in [`RefEntry`]. `ray` is in object space, `wray` and
     /// `tester` its prepared forms. An inner node collapsed into the wide
@@ -378,8 +395,8 @@ fn order_top_level(
     })
 }
 
-/// The best hit so far inside a top-level traversal: (t, u, v, leaf-order
-/// triangle index within its object, ref index).
+/// The best hit so far inside a top-level traversal: (t, u, v, hit
+/// reference within its object (see [`ObjectBvh::hit_record`]), ref index).
 type RefHit = (f32, f32, f32, u32, u32);
 
 /// Prepared instance rays kept per ray (see `RayWalk`).
@@ -540,19 +557,30 @@ impl TopLevelAccel {
     }
 
     fn make_hit(&self, (t, u, v, k, ri): RefHit) -> Hit {
-        let r = &self.refs[ri as usize];
-        let obj = self.object(r).expect("hit refs have objects");
-        if r.instance == INVALID_ID {
-            let mut hit = obj.mesh.make_hit((t, u, v, k));
-            hit.object_id = r.object;
+        let e = &self.entries[ri as usize];
+        let obj = self
+            .objects
+            .get(e.object as usize)
+            .and_then(|o| o.as_deref())
+            .expect("hit refs have objects");
+        let (prim_id, normal) = obj.hit_record(e.wide, k);
+        let mut hit = Hit {
+            t,
+            u,
+            v,
+            prim_id,
+            object_id: e.object,
+            instance_id: INVALID_ID,
+            normal,
+        };
+        if e.instance == INVALID_ID {
+            hit.normal = hit.normal.normalize_or_zero();
             return hit;
         }
         // One normalisation, after the transform: the object-space normal's
         // own (sqrt and division) sat on the hit's latency chain for nothing.
-        let mut hit = obj.mesh.make_hit_unnormalized((t, u, v, k));
-        let xf = &self.instances[r.instance as usize];
-        hit.object_id = r.object;
-        hit.instance_id = r.instance;
+        let xf = &self.instances[e.instance as usize];
+        hit.instance_id = e.instance;
         hit.normal =
             (transform_normal(&xf.world_to_object, hit.normal) * xf.det_sign).normalize_or_zero();
         hit
@@ -717,7 +745,7 @@ impl TopLevelAccel {
         for (i, obj) in self.objects.iter().enumerate() {
             let Some(obj) = obj.as_deref() else { continue };
             if let Some(wide) = &obj.wide {
-                wide.validate(&obj.mesh.triangles)
+                wide.validate(&obj.mesh)
                     .and_then(|()| wide.wide.validate_slot_maps(&obj.mesh.bvh))
                     .map_err(|e| format!("object {i}: {e}"))?;
             }
