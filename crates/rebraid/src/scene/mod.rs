@@ -549,8 +549,15 @@ impl Scene {
             // The whole object structure (binary build, wide collapse,
             // Triangle4 packing) per task: the collapse and packing were a
             // serial 17% of `library --scale 1`'s object builds before.
+            // One object per task (`with_max_len(1)`): rayon's adaptive
+            // split otherwise left a thread running a run of the largest
+            // objects in sequence while the other, done with its share of
+            // small ones, found nothing to steal but their inner joins
+            // (openarena, 51 objects, two threads: 6.7-6.8 -> 5.0-5.3 ms,
+            // nexuiz 13.9-14.4 -> 12.6-13.2 ms; one thread equal).
             let built: Vec<(usize, Result<ObjectBvh, Error>)> = todo
                 .par_iter()
+                .with_max_len(1)
                 .map(|&i| {
                     let o = self.objects[i].as_ref().expect("listed above");
                     (i, MeshBvh::build(&o.mesh, params).map(ObjectBvh::new))
