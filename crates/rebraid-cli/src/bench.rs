@@ -240,7 +240,7 @@ pub fn bench_scene(
 pub fn format_table(rows: &[BenchRow]) -> String {
     let mut s = String::new();
     s.push_str(&format!(
-        "{:<24} {:<17} {:>3} {:>9} {:>9} {:>8} {:>9} {:>7} {:>8} {:>8} {:>7} {:>8} {:>8} {:>8}\n",
+        "{:<24} {:<21} {:>3} {:>9} {:>9} {:>8} {:>9} {:>7} {:>8} {:>8} {:>7} {:>8} {:>8} {:>8}\n",
         "scene",
         "mode",
         "thr",
@@ -258,7 +258,7 @@ pub fn format_table(rows: &[BenchRow]) -> String {
     ));
     for r in rows {
         s.push_str(&format!(
-            "{:<24} {:<17} {:>3} {:>9} {:>9.1} {:>8.1} {:>9.1} {:>7.2} {:>8.1} {:>8.1} {:>7} {:>8.2} {:>8.2} {:>8.2}\n",
+            "{:<24} {:<21} {:>3} {:>9} {:>9.1} {:>8.1} {:>9.1} {:>7.2} {:>8.1} {:>8.1} {:>7} {:>8.2} {:>8.2} {:>8.2}\n",
             r.scene,
             r.mode,
             r.threads,
@@ -286,11 +286,46 @@ pub fn format_answers(rows: &[BenchRow]) -> String {
         .filter(|r| r.threads == rows[0].threads || r.mode.starts_with("embree"))
     {
         s.push_str(&format!(
-            "  {:<24} {:<17} primary {:>8} / {:<16.6e} shadow {:>8} occluded   diffuse {:>8} / {:<16.6e}\n",
+            "  {:<24} {:<21} primary {:>8} / {:<16.6e} shadow {:>8} occluded   diffuse {:>8} / {:<16.6e}\n",
             r.scene, r.mode, r.primary.hits, r.primary.t_sum, r.shadow.hits, r.diffuse.hits, r.diffuse.t_sum
         ));
     }
     s
+}
+
+/// The highest instruction set Embree may use (`rebraid bench
+/// --embree-isa`). Embree picks its widest kernels by itself; on a CPU with
+/// AVX-512 that is its AVX-512 path, which is not always its fastest (see
+/// `docs/performance.md`), so the bench can also time it capped at AVX2,
+/// the instruction set rebraid's kernels use, or at SSE4.2.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum EmbreeIsa {
+    /// Embree's own choice (the widest the CPU has).
+    Auto,
+    Avx2,
+    #[value(name = "sse4.2")]
+    Sse42,
+}
+
+impl EmbreeIsa {
+    /// Appended to the Embree modes' names in the bench rows (`embree-flat`
+    /// for `Auto`, `embree-flat-avx2`, `embree-flat-sse4.2`).
+    pub fn mode_suffix(self) -> &'static str {
+        match self {
+            EmbreeIsa::Auto => "",
+            EmbreeIsa::Avx2 => "-avx2",
+            EmbreeIsa::Sse42 => "-sse4.2",
+        }
+    }
+
+    /// The name `--embree-isa` and the worker's `--max-isa` take.
+    pub fn arg(self) -> &'static str {
+        match self {
+            EmbreeIsa::Auto => "auto",
+            EmbreeIsa::Avx2 => "avx2",
+            EmbreeIsa::Sse42 => "sse4.2",
+        }
+    }
 }
 
 /// Ratios of `mode` against each baseline (Mrays/s of ours over theirs, and

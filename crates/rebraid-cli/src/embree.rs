@@ -29,10 +29,12 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use embree3::{
     BufferUsage, BuildQuality, Config, Device, Format, Geometry, GeometryKind, IntersectContext,
-    RayHit, Scene,
+    Isa, RayHit, Scene,
 };
 use glam::{Affine3A, Mat4, Vec3};
 use rebraid::{INVALID_ID, Ray, SceneDesc, TriangleMesh};
+
+use crate::bench::EmbreeIsa;
 
 /// How a [`SceneDesc`] is laid out in Embree.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -115,9 +117,14 @@ impl std::fmt::Debug for EmbreeScene {
 
 /// A device whose thread count follows the current rayon pool, with a
 /// memory monitor counting its allocations.
-fn new_device() -> anyhow::Result<(Device, Arc<AtomicIsize>)> {
+fn new_device(max_isa: EmbreeIsa) -> anyhow::Result<(Device, Arc<AtomicIsize>)> {
     let config = Config {
         threads: rayon::current_num_threads() as u32,
+        max_isa: match max_isa {
+            EmbreeIsa::Auto => Config::default().max_isa,
+            EmbreeIsa::Avx2 => Isa::Avx2,
+            EmbreeIsa::Sse42 => Isa::Sse4_2,
+        },
         ..Config::default()
     };
     let device =
@@ -183,8 +190,18 @@ impl EmbreeScene {
     ///
     /// Objects without triangles are skipped (they cannot be hit).
     pub fn build(desc: &SceneDesc, mode: EmbreeMode) -> anyhow::Result<(EmbreeScene, f64)> {
+        Self::build_with_isa(desc, mode, EmbreeIsa::Auto)
+    }
+
+    /// [`EmbreeScene::build`] on a device whose kernels are capped at
+    /// `max_isa`.
+    pub fn build_with_isa(
+        desc: &SceneDesc,
+        mode: EmbreeMode,
+        max_isa: EmbreeIsa,
+    ) -> anyhow::Result<(EmbreeScene, f64)> {
         desc.validate().context("invalid scene description")?;
-        let (device, memory) = new_device()?;
+        let (device, memory) = new_device(max_isa)?;
         let start = Instant::now();
         let mut top = device
             .create_scene()

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 
-use crate::bench::{BenchRow, RaySetResult, median, read_rays};
+use crate::bench::{BenchRow, EmbreeIsa, RaySetResult, median, read_rays};
 use crate::embree::{EmbreeMode, EmbreeScene};
 use crate::loaders::LoadOptions;
 use crate::scene_input::SceneInput;
@@ -20,6 +20,7 @@ pub fn run_worker(
     mode: &str,
     threads: usize,
     reps: usize,
+    max_isa: EmbreeIsa,
 ) -> anyhow::Result<BenchRow> {
     let emode = match mode {
         "embree-flat" => EmbreeMode::Flat,
@@ -37,7 +38,7 @@ pub fn run_worker(
         let mut scene = None;
         for _ in 0..reps {
             drop(scene.take());
-            let (s, ms) = EmbreeScene::build(&desc, emode)?;
+            let (s, ms) = EmbreeScene::build_with_isa(&desc, emode, max_isa)?;
             build_ms.push(ms);
             scene = Some(s);
         }

@@ -9,7 +9,7 @@ use anyhow::{Context, bail};
 use clap::{Args, Parser, Subcommand};
 use rebraid::{AccelMode, RefBudget, Scene, SceneParams};
 use rebraid_cli::animate;
-use rebraid_cli::bench::{self, BenchConfig, BenchRow};
+use rebraid_cli::bench::{self, BenchConfig, BenchRow, EmbreeIsa};
 use rebraid_cli::camera::{Camera, UpAxis};
 use rebraid_cli::loaders::{LoadOptions, Split};
 use rebraid_cli::render::{self, RenderSettings};
@@ -240,6 +240,12 @@ struct BenchArgs {
     /// Add Embree 3 rows (embree-flat, embree-two-level), each traced in its own process.
     #[arg(long)]
     embree: bool,
+    /// With `--embree`: the highest instruction set Embree may use,
+    /// comma-separated for a pair of Embree rows each (`auto`: Embree's own
+    /// choice, AVX-512 where the CPU has it; `avx2` and `sse4.2` rows are
+    /// named `embree-flat-avx2` and so on).
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "auto")]
+    embree_isa: Vec<EmbreeIsa>,
     /// Ray sets to trace, comma-separated (the others are generated but
     /// not traced and report 0): for profiling one workload.
     #[arg(long, default_value = "primary,shadow,diffuse")]
@@ -334,6 +340,8 @@ struct EmbreeWorkerArgs {
     threads: usize,
     #[arg(long)]
     reps: usize,
+    #[arg(long, value_enum, default_value = "auto")]
+    max_isa: EmbreeIsa,
     #[command(flatten)]
     opts: SceneOpts,
 }
@@ -501,7 +509,15 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
     }
     println!();
     print!("{}", bench::format_answers(&rows));
-    let ratios = bench::format_ratios(&rows, "rebraided", &["embree-two-level", "embree-flat"]);
+    let baselines: Vec<String> = a
+        .embree_isa
+        .iter()
+        .flat_map(|isa| {
+            ["embree-two-level", "embree-flat"].map(|m| format!("{m}{}", isa.mode_suffix()))
+        })
+        .collect();
+    let baselines: Vec<&str> = baselines.iter().map(String::as_str).collect();
+    let ratios = bench::format_ratios(&rows, "rebraided", &baselines);
     if !ratios.is_empty() {
         println!();
         print!("{ratios}");
@@ -537,16 +553,22 @@ fn embree_rows(
     };
     let mut rows = Vec::new();
     for &t in threads {
-        for mode in ["embree-flat", "embree-two-level"] {
+        for (&isa, mode) in a
+            .embree_isa
+            .iter()
+            .flat_map(|isa| ["embree-flat", "embree-two-level"].map(|m| (isa, m)))
+        {
             eprint!(
-                "\r\x1b[2K{}: {mode} ({t} thr) in a worker process",
-                input.name()
+                "\r\x1b[2K{}: {mode}{} ({t} thr) in a worker process",
+                input.name(),
+                isa.mode_suffix()
             );
             let mut cmd = std::process::Command::new(&exe);
             cmd.args(["embree-worker", &scene_arg, "--mode", mode])
                 .arg("--rays")
                 .arg(&rays)
                 .args(["--threads", &t.to_string(), "--reps", &a.reps.to_string()])
+                .args(["--max-isa", isa.arg()])
                 .args([
                     "--scale",
                     &a.opts.scale.to_string(),
@@ -567,6 +589,7 @@ fn embree_rows(
             let mut row: BenchRow =
                 serde_json::from_slice(&out.stdout).context("reading the Embree worker's row")?;
             row.scene = input.name();
+            row.mode = format!("{mode}{}", isa.mode_suffix());
             rows.push(row);
         }
     }
@@ -584,6 +607,7 @@ fn run_embree_worker(a: EmbreeWorkerArgs) -> anyhow::Result<()> {
         &a.mode,
         a.threads,
         a.reps,
+        a.max_isa,
     )?;
     println!("{}", serde_json::to_string(&row)?);
     Ok(())
