@@ -444,27 +444,30 @@ mod x86 {
             let v = _mm_sub_ps(_mm_mul_ps(ax, cy), _mm_mul_ps(ay, cx));
             let w = _mm_sub_ps(_mm_mul_ps(bx, ay), _mm_mul_ps(by, ax));
             let zero = _mm_setzero_ps();
-            let scalar = _mm_or_ps(
-                _mm_cmpeq_ps(u, zero),
-                _mm_or_ps(_mm_cmpeq_ps(v, zero), _mm_cmpeq_ps(w, zero)),
-            );
             // Some edge function negative and some positive: the ray
-            // passes outside. Min and max give the same answer as the
-            // scalar test's six compares for every lane that is not NaN,
-            // and NaN lanes end with a NaN `t`, rejected either way.
-            let neg = _mm_cmplt_ps(_mm_min_ps(u, _mm_min_ps(v, w)), zero);
-            let pos = _mm_cmpgt_ps(_mm_max_ps(u, _mm_max_ps(v, w)), zero);
-            let outside = _mm_and_ps(neg, pos);
-            // Most tested triangles are missed here: skip the distance and
-            // its division unless some lane is still a candidate or needs
-            // the scalar test.
-            let open = _mm_movemask_ps(_mm_or_ps(
-                _mm_andnot_ps(outside, _mm_cmpeq_ps(zero, zero)),
-                scalar,
-            ));
+            // passes outside. Rounding is monotonic, so a strictly signed
+            // `f32` edge function has the sign of the exact one: such a
+            // lane is outside for the scalar test too, even when another
+            // of its edge functions is zero and the scalar test takes the
+            // `f64` path (which then sees the same strict signs). Min and
+            // max give the six compares' answer for every lane that is not
+            // NaN; NaN lanes end with a NaN `t`, rejected either way.
+            let lo = _mm_min_ps(u, _mm_min_ps(v, w));
+            let hi = _mm_max_ps(u, _mm_max_ps(v, w));
+            let outside = _mm_and_ps(_mm_cmplt_ps(lo, zero), _mm_cmpgt_ps(hi, zero));
+            // Most tested triangles are missed here: skip the rest unless
+            // some lane is still a candidate.
+            let open = !_mm_movemask_ps(outside) & 0xf;
             if open == 0 {
                 return (0, 0, [0.0; 4], [0.0; 4], [0.0; 4]);
             }
+            // A lane that is not outside has an edge function of exactly
+            // zero iff its smallest or largest one is zero (all are >= 0 or
+            // all <= 0): the scalar test decides it in `f64`.
+            let scalar = _mm_andnot_ps(
+                outside,
+                _mm_or_ps(_mm_cmpeq_ps(lo, zero), _mm_cmpeq_ps(hi, zero)),
+            );
             let det = _mm_add_ps(_mm_add_ps(u, v), w);
             let t_scaled = _mm_add_ps(
                 _mm_add_ps(
