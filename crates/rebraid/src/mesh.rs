@@ -201,27 +201,18 @@ impl MeshBvh {
 
     /// Turn a leaf-order hit into a [`Hit`] with the mesh's primitive id.
     #[inline]
-    pub fn make_hit(&self, hit: (f32, f32, f32, u32)) -> Hit {
-        let mut h = self.make_hit_unnormalized(hit);
-        h.normal = h.normal.normalize_or_zero();
-        h
+    pub fn make_hit(&self, (t, u, v, k): (f32, f32, f32, u32)) -> Hit {
+        let (prim_id, normal) = self.hit_record(k);
+        Hit::on_mesh(t, u, v, prim_id, normal)
     }
 
-    /// [`MeshBvh::make_hit`] with the geometric normal left at its length
-    /// (`(v1 - v0) x (v2 - v0)`), for callers that transform it before
-    /// normalising once (instance hits).
+    /// The primitive id and the geometric normal at its length (`(v1 -
+    /// v0) x (v2 - v0)`) of leaf-order slot `k`, for callers that transform
+    /// the normal before normalising it once (instance hits).
     #[inline]
-    pub fn make_hit_unnormalized(&self, (t, u, v, k): (f32, f32, f32, u32)) -> Hit {
+    pub fn hit_record(&self, k: u32) -> (u32, Vec3) {
         let [a, b, c] = self.triangles[k as usize];
-        Hit {
-            t,
-            u,
-            v,
-            prim_id: self.bvh.prim_indices[k as usize],
-            object_id: INVALID_ID,
-            instance_id: INVALID_ID,
-            normal: geometric_normal(a, b, c),
-        }
+        (self.bvh.prim_indices[k as usize], geometric_normal(a, b, c))
     }
 
     /// Closest hit along the ray, if any.

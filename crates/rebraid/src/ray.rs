@@ -111,6 +111,21 @@ pub struct Hit {
 }
 
 impl Hit {
+    /// A hit on one mesh, from its leaf record: the primitive id and the
+    /// geometric normal (normalised here); no object or instance id yet.
+    #[inline(always)]
+    pub fn on_mesh(t: f32, u: f32, v: f32, prim_id: u32, normal: Vec3) -> Hit {
+        Hit {
+            t,
+            u,
+            v,
+            prim_id,
+            object_id: INVALID_ID,
+            instance_id: INVALID_ID,
+            normal: normal.normalize_or_zero(),
+        }
+    }
+
     /// A placeholder that any real hit replaces.
     pub const NONE: Hit = Hit {
         t: f32::INFINITY,

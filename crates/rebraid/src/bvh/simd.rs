@@ -42,7 +42,7 @@ use super::wide::{WideBvh, WideNode, WideStats, decode_leaf, is_leaf_ref};
 use super::{BoxRay, BvhNode, MAX_DEPTH, ROBUST_FAR, TraversalCounters};
 use crate::mesh::MeshBvh;
 use crate::triangle::WatertightRay;
-use crate::{Error, Hit, INVALID_ID, Ray};
+use crate::{Error, Hit, Ray};
 
 /// Entries of a wide traversal stack. The stack only holds siblings of the
 /// nodes on the current path, at most `W - 1` per level; a wide inner node
@@ -597,15 +597,7 @@ impl<const W: usize> WideMeshBvh<W> {
 
     fn make_hit(&self, (t, u, v, k): LeafHit) -> Hit {
         let (prim_id, normal) = block_hit_record(&self.blocks, k);
-        Hit {
-            t,
-            u,
-            v,
-            prim_id,
-            object_id: INVALID_ID,
-            instance_id: INVALID_ID,
-            normal: normal.normalize_or_zero(),
-        }
+        Hit::on_mesh(t, u, v, prim_id, normal)
     }
 
     /// The closest (or, with `ANY`, some) hit as (t, u, v, block lane).

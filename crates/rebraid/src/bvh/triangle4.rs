@@ -127,8 +127,8 @@ impl Triangle4 {
 /// rewrite each leaf reference to name its blocks (first block, block
 /// count) instead of its triangle slots. `triangles` are the leaf-order
 /// triangles the leaves index and `prim_indices` their primitive ids (the
-/// BVH's index array), which the blocks store. Blocks follow the node array's order, so a
-/// node's leaves lie close together. Afterwards `wide.prim_count` is the
+/// BVH's index array), which the blocks store. Blocks follow the node
+/// array's order, so a node's leaves lie close together. Afterwards `wide.prim_count` is the
 /// number of blocks (what [`WideBvh::validate`] checks against, with
 /// [`block_boxes`]).
 pub fn pack_triangle4<const W: usize>(

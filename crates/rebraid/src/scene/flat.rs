@@ -8,7 +8,7 @@ use rayon::prelude::*;
 
 use crate::bvh::triangle4::block_hit_record;
 use crate::bvh::{BuildParams, Kernel, TraversalCounters, WideTriangleBvh, query_subtree};
-use crate::{Error, Hit, INVALID_ID, MeshBvh, Ray, TriangleMesh};
+use crate::{Error, Hit, MeshBvh, Ray, TriangleMesh};
 
 /// Where a triangle of the flat BVH came from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -107,15 +107,7 @@ impl FlatAccel {
                 )?;
                 let (t, u, v, k) = h;
                 let (prim_id, normal) = block_hit_record(&w.blocks, k);
-                Some(self.map_hit(Hit {
-                    t,
-                    u,
-                    v,
-                    prim_id,
-                    object_id: INVALID_ID,
-                    instance_id: INVALID_ID,
-                    normal: normal.normalize_or_zero(),
-                }))
+                Some(self.map_hit(Hit::on_mesh(t, u, v, prim_id, normal)))
             }
         }
     }

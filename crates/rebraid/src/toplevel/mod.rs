@@ -93,10 +93,7 @@ impl ObjectBvh {
     pub fn hit_record(&self, w: u32, k: u32) -> (u32, glam::Vec3) {
         match &self.wide {
             Some(wide) if w != WIDE_EMPTY => block_hit_record(&wide.blocks, k),
-            _ => {
-                let h = self.mesh.make_hit_unnormalized((0.0, 0.0, 0.0, k));
-                (h.prim_id, h.normal)
-            }
+            _ => self.mesh.hit_record(k),
         }
     }
 
