@@ -328,30 +328,42 @@ impl EmbreeIsa {
     }
 }
 
-/// Ratios of `mode` against each baseline (Mrays/s of ours over theirs, and
-/// build time of theirs over ours, so above 1.0 means ours is ahead), per
-/// scene and thread count, from rows of one run: the figure issue 6 asks
-/// for. Empty when no row of `mode` has a baseline beside it.
-pub fn format_ratios(rows: &[BenchRow], mode: &str, baselines: &[&str]) -> String {
+/// Ratio tables of `mode` against each baseline mode: Mrays/s ours over
+/// theirs per ray set, build time theirs over ours. `cycles` holds the rows
+/// of each measurement cycle (see [`median_rows`]); each ratio is the median
+/// over the cycles of the ratio within a cycle, so that it pairs figures
+/// measured close in time on a machine whose speed drifts.
+pub fn format_ratios(cycles: &[Vec<BenchRow>], mode: &str, baselines: &[&str]) -> String {
     let mut s = String::new();
+    let Some(first) = cycles.first() else {
+        return s;
+    };
+    let q = |a: f64, b: f64| if b > 0.0 { a / b } else { f64::NAN };
     for base in baselines {
         let mut lines = Vec::new();
-        for ours in rows.iter().filter(|r| r.mode == mode) {
-            let Some(theirs) = rows
-                .iter()
-                .find(|r| r.mode == *base && r.scene == ours.scene && r.threads == ours.threads)
-            else {
+        for ours0 in first.iter().filter(|r| r.mode == mode) {
+            let mut ratios: [Vec<f64>; 4] = Default::default();
+            for rows in cycles {
+                let find = |m: &str| {
+                    rows.iter().find(|r| {
+                        r.mode == m && r.scene == ours0.scene && r.threads == ours0.threads
+                    })
+                };
+                let (Some(ours), Some(theirs)) = (find(mode), find(base)) else {
+                    continue;
+                };
+                ratios[0].push(q(ours.primary.mrays_per_s, theirs.primary.mrays_per_s));
+                ratios[1].push(q(ours.shadow.mrays_per_s, theirs.shadow.mrays_per_s));
+                ratios[2].push(q(ours.diffuse.mrays_per_s, theirs.diffuse.mrays_per_s));
+                ratios[3].push(q(theirs.build_ms_total, ours.build_ms_total));
+            }
+            if ratios[0].is_empty() {
                 continue;
-            };
-            let q = |a: f64, b: f64| if b > 0.0 { a / b } else { f64::NAN };
+            }
+            let [p, sh, d, b] = ratios.map(median);
             lines.push(format!(
                 "  {:<24} {:>3} {:>8.2} {:>8.2} {:>8.2} {:>8.2}\n",
-                ours.scene,
-                ours.threads,
-                q(ours.primary.mrays_per_s, theirs.primary.mrays_per_s),
-                q(ours.shadow.mrays_per_s, theirs.shadow.mrays_per_s),
-                q(ours.diffuse.mrays_per_s, theirs.diffuse.mrays_per_s),
-                q(theirs.build_ms_total, ours.build_ms_total),
+                ours0.scene, ours0.threads, p, sh, d, b,
             ));
         }
         if lines.is_empty() {
@@ -366,6 +378,40 @@ pub fn format_ratios(rows: &[BenchRow], mode: &str, baselines: &[&str]) -> Strin
         }
     }
     s
+}
+
+/// One row per (scene, mode, threads) of the first cycle, each figure the
+/// median of that row's figures over the cycles. `rebraid bench --embree`
+/// measures in cycles (every mode and every Embree worker once per cycle,
+/// in turn), so that ours and Embree's figures alternate in time as the
+/// modes' own do; the answers (hits, distance sums) are the first cycle's.
+pub fn median_rows(cycles: &[Vec<BenchRow>]) -> Vec<BenchRow> {
+    let Some(first) = cycles.first() else {
+        return Vec::new();
+    };
+    first
+        .iter()
+        .map(|r0| {
+            let same: Vec<&BenchRow> = cycles
+                .iter()
+                .filter_map(|rows| {
+                    rows.iter().find(|r| {
+                        r.scene == r0.scene && r.mode == r0.mode && r.threads == r0.threads
+                    })
+                })
+                .collect();
+            let med = |f: &dyn Fn(&BenchRow) -> f64| median(same.iter().map(|r| f(r)).collect());
+            let mut row = r0.clone();
+            row.build_ms_objects = med(&|r| r.build_ms_objects);
+            row.build_ms_top = med(&|r| r.build_ms_top);
+            row.build_ms_total = med(&|r| r.build_ms_total);
+            row.mtris_per_s = row.triangles as f64 / (row.build_ms_total.max(1e-9) * 1e-3) / 1e6;
+            row.primary.mrays_per_s = med(&|r| r.primary.mrays_per_s);
+            row.shadow.mrays_per_s = med(&|r| r.shadow.mrays_per_s);
+            row.diffuse.mrays_per_s = med(&|r| r.diffuse.mrays_per_s);
+            row
+        })
+        .collect()
 }
 
 /// Empty the ray sets not named in `names` (comma-separated `primary`,
@@ -472,7 +518,11 @@ mod tests {
             row("a", "embree-two-level", 1, 5.0, 12.0, 3.0, 10.0),
             row("b", "rebraided", 1, 1.0, 1.0, 1.0, 1.0),
         ];
-        let s = format_ratios(&rows, "rebraided", &["embree-two-level", "embree-flat"]);
+        let s = format_ratios(
+            std::slice::from_ref(&rows),
+            "rebraided",
+            &["embree-two-level", "embree-flat"],
+        );
         assert!(s.contains("rebraided / embree-two-level"), "{s}");
         assert!(!s.contains("embree-flat"), "no flat rows: {s}");
         let line = s
@@ -482,7 +532,43 @@ mod tests {
         let cols: Vec<&str> = line.split_whitespace().collect();
         assert_eq!(cols, ["a", "1", "2.00", "0.50", "1.00", "0.50"]);
         assert_eq!(s.lines().count(), 3, "{s}");
-        assert!(format_ratios(&rows, "flat", &["embree-flat"]).is_empty());
+        assert!(format_ratios(std::slice::from_ref(&rows), "flat", &["embree-flat"]).is_empty());
+    }
+
+    #[test]
+    fn ratios_and_rows_over_cycles_are_medians() {
+        let row = |mode: &str, p: f64, build: f64| BenchRow {
+            scene: "a".into(),
+            mode: mode.into(),
+            threads: 1,
+            triangles: 1000,
+            build_ms_total: build,
+            primary: RaySetResult {
+                mrays_per_s: p,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        // The machine runs at a third of its speed in cycle 2: a ratio of
+        // medians (10 / 5 = 2) hides what every cycle says (3).
+        let cycles = vec![
+            vec![row("rebraided", 12.0, 10.0), row("embree-flat", 4.0, 20.0)],
+            vec![row("rebraided", 3.0, 30.0), row("embree-flat", 1.0, 90.0)],
+            vec![row("rebraided", 9.0, 20.0), row("embree-flat", 3.0, 40.0)],
+        ];
+        let s = format_ratios(&cycles, "rebraided", &["embree-flat"]);
+        let line = s
+            .lines()
+            .find(|l| l.trim_start().starts_with("a "))
+            .unwrap();
+        let cols: Vec<&str> = line.split_whitespace().collect();
+        assert_eq!(cols[..3], ["a", "1", "3.00"]);
+        assert_eq!(cols[5], "2.00", "build: median of 2, 3, 2");
+        let rows = median_rows(&cycles);
+        assert_eq!(rows.len(), 2);
+        assert_eq!(rows[0].primary.mrays_per_s, 9.0);
+        assert_eq!(rows[1].build_ms_total, 40.0);
+        assert_eq!(rows[0].mtris_per_s, 1000.0 / 0.02 / 1e6);
     }
 
     #[test]

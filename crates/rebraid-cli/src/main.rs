@@ -227,7 +227,10 @@ struct BenchArgs {
     /// Thread counts, comma-separated; N = all cores.
     #[arg(long, default_value = "1,N")]
     threads: String,
-    /// Repetitions per figure (the median is reported).
+    /// Repetitions per figure (the median is reported). With `--embree`,
+    /// repetitions are cycles: each runs every mode and every Embree worker
+    /// once, in turn, and a ratio is the median of the cycles' ratios, so
+    /// that ours and Embree's figures alternate in time.
     #[arg(long, default_value_t = 3)]
     reps: usize,
     #[arg(long, default_value_t = 1280)]
@@ -472,7 +475,11 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
         .iter()
         .map(|s| a.opts.input(s))
         .collect::<Result<_, _>>()?;
+    // Without Embree, one cycle of `reps` repetitions (the modes alternate
+    // inside it); with Embree, `reps` cycles of one repetition each.
+    let (cycles, reps_per_cycle) = if a.embree { (a.reps, 1) } else { (1, a.reps) };
     let mut rows: Vec<BenchRow> = Vec::new();
+    let mut all_cycles: Vec<Vec<BenchRow>> = vec![Vec::new(); cycles];
     for input in &inputs {
         let name = input.name();
         let (desc, load_ms) = input.load(&a.opts.load_options())?;
@@ -492,18 +499,44 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
         let cfg = BenchConfig {
             modes: modes.clone(),
             threads: threads.clone(),
-            reps: a.reps,
+            reps: reps_per_cycle,
             width: a.width,
             height: a.height,
             params,
         };
-        let mut scene_rows = bench::bench_scene(&name, &desc, &sets, &camera, &cfg, |msg| {
-            eprint!("\r\x1b[2K{msg}")
-        })?;
-        eprint!("\r\x1b[2K");
-        if a.embree {
-            scene_rows.extend(embree_rows(input, &a, &sets, &threads)?);
+        let ray_dir = a.embree.then(|| -> anyhow::Result<_> {
+            let dir = tempfile_dir()?;
+            bench::write_rays(&dir.join("rays.bin"), &sets)?;
+            Ok(dir)
+        });
+        let ray_dir = ray_dir.transpose()?;
+        let mut scene_cycles = Vec::with_capacity(cycles);
+        for c in 0..cycles {
+            let tag = if cycles > 1 {
+                format!(" [cycle {}/{cycles}]", c + 1)
+            } else {
+                String::new()
+            };
+            let mut cycle_rows = bench::bench_scene(&name, &desc, &sets, &camera, &cfg, |msg| {
+                eprint!("\r\x1b[2K{msg}{tag}")
+            })?;
+            eprint!("\r\x1b[2K");
+            if let Some(dir) = &ray_dir {
+                cycle_rows.extend(embree_rows(
+                    input,
+                    &a,
+                    &dir.join("rays.bin"),
+                    &threads,
+                    &tag,
+                )?);
+            }
+            all_cycles[c].extend(cycle_rows.iter().cloned());
+            scene_cycles.push(cycle_rows);
         }
+        if let Some(dir) = &ray_dir {
+            std::fs::remove_dir_all(dir).ok();
+        }
+        let scene_rows = bench::median_rows(&scene_cycles);
         print!("{}", bench::format_table(&scene_rows));
         rows.extend(scene_rows);
     }
@@ -517,9 +550,12 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
         })
         .collect();
     let baselines: Vec<&str> = baselines.iter().map(String::as_str).collect();
-    let ratios = bench::format_ratios(&rows, "rebraided", &baselines);
+    let ratios = bench::format_ratios(&all_cycles, "rebraided", &baselines);
     if !ratios.is_empty() {
         println!();
+        if cycles > 1 {
+            println!("(each ratio: the median over {cycles} cycles of the ratio within a cycle)");
+        }
         print!("{ratios}");
     }
     if let Some(p) = &a.json {
@@ -534,17 +570,23 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Embree rows, each (mode, threads) traced by a worker process.
+/// A fresh directory for the ray file the Embree workers read.
+fn tempfile_dir() -> anyhow::Result<PathBuf> {
+    let dir = std::env::temp_dir().join(format!("rebraid-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    Ok(dir)
+}
+
+/// Embree rows, each (mode, threads) traced by a worker process (with
+/// `a.reps` repetitions, or one per cycle when `tag` names a cycle).
 fn embree_rows(
     input: &SceneInput,
     a: &BenchArgs,
-    sets: &rebraid_cli::raysets::RaySets,
+    rays: &std::path::Path,
     threads: &[usize],
+    tag: &str,
 ) -> anyhow::Result<Vec<BenchRow>> {
-    let dir = std::env::temp_dir().join(format!("rebraid-bench-{}", std::process::id()));
-    std::fs::create_dir_all(&dir)?;
-    let rays = dir.join("rays.bin");
-    bench::write_rays(&rays, sets)?;
+    let reps = if tag.is_empty() { a.reps } else { 1 };
     let exe = std::env::current_exe()?;
     let scene_arg = match input {
         SceneInput::Library { .. } => "library".to_string(),
@@ -559,7 +601,7 @@ fn embree_rows(
             .flat_map(|isa| ["embree-flat", "embree-two-level"].map(|m| (isa, m)))
         {
             eprint!(
-                "\r\x1b[2K{}: {mode}{} ({t} thr) in a worker process",
+                "\r\x1b[2K{}: {mode}{} ({t} thr) in a worker process{tag}",
                 input.name(),
                 isa.mode_suffix()
             );
@@ -567,7 +609,7 @@ fn embree_rows(
             cmd.args(["embree-worker", &scene_arg, "--mode", mode])
                 .arg("--rays")
                 .arg(&rays)
-                .args(["--threads", &t.to_string(), "--reps", &a.reps.to_string()])
+                .args(["--threads", &t.to_string(), "--reps", &reps.to_string()])
                 .args(["--max-isa", isa.arg()])
                 .args([
                     "--scale",
@@ -594,7 +636,6 @@ fn embree_rows(
         }
     }
     eprint!("\r\x1b[2K");
-    std::fs::remove_dir_all(&dir).ok();
     Ok(rows)
 }
 
