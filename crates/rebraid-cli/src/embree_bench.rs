@@ -34,6 +34,12 @@ pub fn run_worker(
         .build()
         .context("building a thread pool")?;
     pool.install(|| {
+        // One untimed build first: a worker is a fresh process, and its
+        // first build pays for fresh memory (page faults) and Embree's
+        // start-up, which our builds, timed in a process that has built
+        // before, do not (`bench --embree` runs one timed build per worker
+        // when it measures in cycles).
+        drop(EmbreeScene::build_with_isa(&desc, emode, max_isa)?);
         let mut build_ms = Vec::new();
         let mut scene = None;
         for _ in 0..reps {

@@ -511,7 +511,7 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
         });
         let ray_dir = ray_dir.transpose()?;
         let mut scene_cycles = Vec::with_capacity(cycles);
-        for c in 0..cycles {
+        for (c, cycle_all) in all_cycles.iter_mut().enumerate() {
             let tag = if cycles > 1 {
                 format!(" [cycle {}/{cycles}]", c + 1)
             } else {
@@ -530,7 +530,7 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
                     &tag,
                 )?);
             }
-            all_cycles[c].extend(cycle_rows.iter().cloned());
+            cycle_all.extend(cycle_rows.iter().cloned());
             scene_cycles.push(cycle_rows);
         }
         if let Some(dir) = &ray_dir {
@@ -608,7 +608,7 @@ fn embree_rows(
             let mut cmd = std::process::Command::new(&exe);
             cmd.args(["embree-worker", &scene_arg, "--mode", mode])
                 .arg("--rays")
-                .arg(&rays)
+                .arg(rays)
                 .args(["--threads", &t.to_string(), "--reps", &reps.to_string()])
                 .args(["--max-isa", isa.arg()])
                 .args([
