@@ -1,4 +1,5 @@
-//! Wide nodes and leaves visited per ray, by acceleration mode and ray set:
+//! Wide nodes and leaves visited per ray, by acceleration mode and ray set
+//! (shadow rays: occlusion queries, which stop at the first hit):
 //! how much of a mode's speed difference is tree shape (visits) and how much
 //! is cost per visit. In the two-level modes a "leaf" is a top-level leaf
 //! (an entry into an object) or an object's leaf.
@@ -56,10 +57,18 @@ fn main() -> anyhow::Result<()> {
             built[0].1.intersect_batch(r, h)
         });
         for (mode, scene) in &built {
-            for (set, rays) in [("primary", &sets.primary), ("diffuse", &sets.diffuse)] {
+            for (set, rays) in [
+                ("primary", &sets.primary),
+                ("shadow", &sets.shadow),
+                ("diffuse", &sets.diffuse),
+            ] {
                 let mut c = TraversalCounters::default();
                 for r in rays {
-                    scene.intersect_counted(r, &mut c);
+                    if set == "shadow" {
+                        scene.occluded_counted(r, &mut c);
+                    } else {
+                        scene.intersect_counted(r, &mut c);
+                    }
                 }
                 let n = rays.len().max(1) as f64;
                 println!(

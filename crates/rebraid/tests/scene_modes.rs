@@ -367,3 +367,43 @@ fn invalid_rays_hit_nothing_in_every_mode() {
         assert!(out.iter().all(|h| h.is_none()));
     }
 }
+
+/// The counted queries answer as the plain ones do, in every mode, and count
+/// the nodes they visit: a ray that hits nothing visits the same nodes and
+/// leaves whether it asks for the closest hit or for any hit.
+#[test]
+fn counted_queries_agree_with_the_plain_ones() {
+    use rebraid::bvh::TraversalCounters;
+    let mut rng = rng(17);
+    let model = random_model(&mut rng, &Gen::default());
+    let world = model.world();
+    let rays = random_rays(&mut rng, &world, 400, SCENE_LO, SCENE_HI);
+    let mut scene = model.to_scene(params(AccelMode::Flat));
+    for mode in AccelMode::ALL {
+        scene.set_mode(mode);
+        scene.commit().unwrap();
+        let (mut total, mut misses) = (TraversalCounters::default(), 0);
+        for r in &rays {
+            let (mut closest, mut any) =
+                (TraversalCounters::default(), TraversalCounters::default());
+            let hit = scene.intersect_counted(r, &mut closest);
+            assert_eq!(hit, scene.intersect(r), "{mode:?}");
+            let occluded = scene.occluded_counted(r, &mut any);
+            assert_eq!(occluded, scene.occluded(r), "{mode:?}");
+            if !occluded {
+                assert_eq!(
+                    (any.inner_visited, any.leaves_visited),
+                    (closest.inner_visited, closest.leaves_visited),
+                    "{mode:?}: a miss visits the same nodes either way"
+                );
+                misses += 1;
+            }
+            total.inner_visited += closest.inner_visited;
+        }
+        assert!(total.inner_visited > 0, "{mode:?}");
+        assert!(
+            misses > 0 && misses < rays.len(),
+            "{mode:?}: {misses} misses"
+        );
+    }
+}

@@ -113,6 +113,11 @@ impl FlatAccel {
     }
 
     pub fn occluded(&self, ray: &Ray) -> bool {
+        self.occluded_counted(ray, &mut TraversalCounters::default())
+    }
+
+    /// Occlusion, counting visited nodes (the binary fallback counts none).
+    pub fn occluded_counted(&self, ray: &Ray, counters: &mut TraversalCounters) -> bool {
         match self.wide_entry(ray) {
             None => self.bvh.occluded(ray),
             Some(None) => false,
@@ -123,7 +128,7 @@ impl FlatAccel {
                 0,
                 ray,
                 ray.t_max,
-                &mut TraversalCounters::default(),
+                counters,
             )
             .is_some(),
         }

@@ -723,6 +723,16 @@ impl Scene {
         }
     }
 
+    /// Occlusion, counting the nodes and leaves visited (see
+    /// [`Scene::intersect_counted`]).
+    pub fn occluded_counted(&self, ray: &Ray, counters: &mut TraversalCounters) -> bool {
+        match &self.accel {
+            Accel::Empty => false,
+            Accel::Flat(f) => f.occluded_counted(ray, counters),
+            Accel::TopLevel(t) => t.occluded_counted(ray, counters),
+        }
+    }
+
     /// Closest hits of many rays, in parallel.
     pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
         crate::ray::par_query(rays, out, |r| self.intersect(r));

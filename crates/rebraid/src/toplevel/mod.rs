@@ -585,13 +585,18 @@ impl TopLevelAccel {
 
     /// True when anything is hit within the ray's interval.
     pub fn occluded(&self, ray: &Ray) -> bool {
+        self.occluded_counted(ray, &mut TraversalCounters::default())
+    }
+
+    /// Occlusion, counting visited nodes of both levels.
+    pub fn occluded_counted(&self, ray: &Ray, counters: &mut TraversalCounters) -> bool {
         if !ray.is_valid() {
             return false;
         }
         let mut walk = RayWalk::<true> {
             accel: self,
             ray,
-            counters: &mut TraversalCounters::default(),
+            counters,
             best: None,
         };
         with_kernel(self.kernel, &mut walk);
