@@ -370,7 +370,9 @@ mod x86 {
                 // `near < inf` only matters on the exact path (a zero
                 // direction component can make both distances `+inf`); the
                 // FMA path's finite constants give an empty slot `+inf`
-                // and `-inf`.
+                // and `-inf`. There, `near` is `+inf` only for a box beyond
+                // the `f32` range of an unbounded ray, where no hit can lie:
+                // entering it costs a test, never an answer.
                 let mut hit = _mm256_cmp_ps::<_CMP_LE_OQ>(near, far);
                 if self.exact {
                     hit = _mm256_and_ps(
