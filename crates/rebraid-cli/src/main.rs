@@ -527,6 +527,7 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
                     &a,
                     &dir.join("rays.bin"),
                     &threads,
+                    reps_per_cycle,
                     &tag,
                 )?);
             }
@@ -577,16 +578,16 @@ fn tempfile_dir() -> anyhow::Result<PathBuf> {
     Ok(dir)
 }
 
-/// Embree rows, each (mode, threads) traced by a worker process (with
-/// `a.reps` repetitions, or one per cycle when `tag` names a cycle).
+/// Embree rows, each (mode, threads) traced by a worker process with
+/// `reps` repetitions; `tag` names the cycle in the progress line.
 fn embree_rows(
     input: &SceneInput,
     a: &BenchArgs,
     rays: &std::path::Path,
     threads: &[usize],
+    reps: usize,
     tag: &str,
 ) -> anyhow::Result<Vec<BenchRow>> {
-    let reps = if tag.is_empty() { a.reps } else { 1 };
     let exe = std::env::current_exe()?;
     let scene_arg = match input {
         SceneInput::Library { .. } => "library".to_string(),
