@@ -514,3 +514,71 @@ fn separated_objects_cost_nearly_nothing() {
         two.sah_cost
     );
 }
+
+/// Pulling the object nodes that top-level leaves enter into the top
+/// level's empty slots (`RebraidParams::pull_entry_nodes`): the same
+/// answers as brute force with and without it, every primitive reachable
+/// once through the wide top level, no node left with room for a ref's
+/// children, and each pull of `k` children filling `k - 1` empty slots.
+#[test]
+fn pulled_entry_nodes_answer_right_and_fill_the_top_level() {
+    use rebraid::bvh::wide::{decode_leaf, is_leaf_ref};
+    let mut pulled_anywhere = 0;
+    for (seed, budget) in [
+        (3u64, RebraidParams::default().budget),
+        (4, RebraidParams::default().budget),
+        (3, RefBudget::Spare(0)),
+        (4, RefBudget::Spare(20)),
+    ] {
+        let model = overlapping_model(seed);
+        let world = model.world();
+        let rays = random_rays(&mut rng(seed + 60), &world, 250, SCENE_LO, SCENE_HI);
+        let (mut empty, mut pulled) = (Vec::new(), 0);
+        for pull in [false, true] {
+            let what = format!("seed {seed} {budget:?} pull {pull}");
+            let mut scene = model.to_scene(rebraided(RebraidParams {
+                pull_entry_nodes: pull,
+                budget,
+                ..Default::default()
+            }));
+            scene.commit().unwrap();
+            let t = top(&scene);
+            check_top(t, &model, &what);
+            check_scene(&scene, &world, &rays, false, &what);
+            let wide = t.wide.as_ref().expect("a top level");
+            empty.push(wide.stats().empty_slots);
+            if !pull {
+                assert_eq!(t.entry_refs, t.refs, "{what}");
+                continue;
+            }
+            pulled = t.entries.len() - t.refs.len();
+            for node in &wide.nodes {
+                let used = node.child_count();
+                for &c in &node.child[..used] {
+                    if !is_leaf_ref(c) {
+                        continue;
+                    }
+                    let e = t.entries[decode_leaf(c).0 as usize];
+                    let Some(obj) = t.objects[e.object as usize].as_deref() else {
+                        continue;
+                    };
+                    if let Some(ow) = &obj.wide
+                        && !is_leaf_ref(e.wide)
+                    {
+                        let k = ow.wide.nodes[e.wide as usize].child_count();
+                        assert!(k > 8 - used + 1, "{what}: a node has room for {k} children");
+                    }
+                }
+            }
+        }
+        assert_eq!(
+            empty[0] - empty[1],
+            pulled,
+            "seed {seed} {budget:?}: {empty:?}"
+        );
+        pulled_anywhere += pulled;
+    }
+    // Lists opened down to object leaves have nothing left to pull; the
+    // small budgets leave object nodes behind top-level leaves.
+    assert!(pulled_anywhere > 0, "nothing pulled in any configuration");
+}

@@ -692,6 +692,7 @@ impl Scene {
             instances,
             build_stats,
             self.params.kernel.unwrap_or_else(Kernel::best),
+            params.open && params.pull_entry_nodes,
         );
         #[cfg(debug_assertions)]
         if let Err(e) = accel.validate() {

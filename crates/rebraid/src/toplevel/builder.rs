@@ -152,6 +152,12 @@ pub struct RebraidParams {
     /// cost estimate from subtree costs is too optimistic), no change on
     /// the other shared scenes.
     pub max_leaf_refs: usize,
+    /// After the top level is collapsed to 8 wide, fill each top-level
+    /// node's empty slots with the child slots of the object nodes its refs
+    /// enter (see [`super::TopLevelAccel::new`]): a ray then tests those
+    /// children in the top-level node it is already testing, instead of
+    /// entering the object to test its node.
+    pub pull_entry_nodes: bool,
     /// Lists longer than this are opened, binned and partitioned with
     /// data-parallel loops, and their halves built as parallel tasks.
     pub parallel_threshold: usize,
@@ -173,6 +179,7 @@ impl Default for RebraidParams {
             max_leaf_refs: 1,
             open_rounds: 4,
             open_only_overlapping: false,
+            pull_entry_nodes: true,
             parallel_threshold: 1024,
         }
     }
@@ -533,32 +540,42 @@ fn child_ref(ctx: &Ctx, r: &BuildRef, i: u32) -> BuildRef {
     let obj = ctx.src.objects[r.object as usize]
         .as_deref()
         .expect("validated");
-    let node = &obj.nodes()[i as usize];
-    let local = node.bounds();
     let xf = (r.instance != INVALID_ID).then(|| &ctx.src.instances[r.instance as usize]);
-    let bounds = match xf {
-        None => local,
-        // An instanced leaf's world box is that of its transformed vertices
-        // (a handful): much tighter than the transformed local box under
-        // rotation. Inner nodes get the transformed local box. Both are
-        // clipped to the parent's world box, which holds them up to
-        // rounding, so that the top-level nodes nest exactly.
+    BuildRef {
+        bounds: placed_bounds(obj, xf, i, &r.bounds),
+        object: r.object,
+        node: i,
+        instance: r.instance,
+        prims: obj.subtree_prims[i as usize],
+        cost: obj.subtree_cost[i as usize],
+    }
+}
+
+/// World box of binary node `node` of `obj` placed by `xf` (directly when
+/// `None`) as a child of a ref whose world box is `parent`.
+///
+/// An instanced leaf's world box is that of its transformed vertices (a
+/// handful): much tighter than the transformed local box under rotation.
+/// Inner nodes get the transformed local box. Both are clipped to the
+/// parent's world box, which holds them up to rounding, so that the
+/// top-level nodes nest exactly.
+pub(crate) fn placed_bounds(
+    obj: &ObjectBvh,
+    xf: Option<&InstanceXf>,
+    node: u32,
+    parent: &Aabb,
+) -> Aabb {
+    let node = &obj.nodes()[node as usize];
+    match xf {
+        None => node.bounds(),
         Some(xf) if node.is_leaf() => obj.mesh.triangles[node.prim_range()]
             .iter()
             .flatten()
             .fold(Aabb::EMPTY, |b, v| {
                 b.grow(xf.object_to_world.transform_point3(*v))
             })
-            .intersection(r.bounds),
-        Some(xf) => xf.world_box(&local).intersection(r.bounds),
-    };
-    BuildRef {
-        bounds,
-        object: r.object,
-        node: i,
-        instance: r.instance,
-        prims: obj.subtree_prims[i as usize],
-        cost: obj.subtree_cost[i as usize],
+            .intersection(*parent),
+        Some(xf) => xf.world_box(&node.bounds()).intersection(*parent),
     }
 }
 

@@ -17,7 +17,7 @@ use rayon::prelude::*;
 
 use crate::bvh::occlusion_order::{OcclusionStats, order_for_occlusion};
 use crate::bvh::triangle4::{block_hit_record, intersect_blocks, leaf_occlusion};
-use crate::bvh::wide::{WIDE_EMPTY, decode_leaf, is_leaf_ref};
+use crate::bvh::wide::{WIDE_EMPTY, decode_leaf, encode_leaf, is_leaf_ref};
 use crate::bvh::{
     BoxRay, BoxTester, Bvh, BvhNode, Kernel, SahCosts, TRAVERSAL_STACK, TesterFactory,
     TraversalCounters, WideBvh, WideQuery, WideTriangleBvh, subtree_with, traverse_with,
@@ -325,8 +325,115 @@ pub struct TopLevelAccel {
     pub wide: Option<WideBvh<8>>,
     /// The traversal kernel (the scene's choice, by default [`Kernel::best`]).
     pub kernel: Kernel,
-    /// One [`RefEntry`] per ref, made with the accel.
+    /// The refs the leaves of `wide` index: `refs`, unless entry nodes were
+    /// pulled into the top level (see [`pull_into_top_level`]), which
+    /// replaces some refs by their children.
+    pub entry_refs: Vec<TopRef>,
+    /// One [`RefEntry`] per entry ref, made with the accel.
     pub entries: Vec<RefEntry>,
+}
+
+/// Fill the empty slots of the collapsed top level's nodes with the child
+/// slots of the object nodes its refs enter.
+///
+/// A top-level leaf holding one ref sends a ray that hits its box into the
+/// object, where the first thing it does is test the 8-wide node the ref
+/// names. When the top-level node holding the leaf has room for that node's
+/// children (`k - 1` free slots for `k` children), its slot is replaced by
+/// them, each a new entry into the object (a wide node or a leaf of
+/// triangle blocks), and the object node is never visited: one node test
+/// fewer for each ray that enters there, at the cost of entering the object
+/// through whichever of the children it hits. By the SAH every such
+/// replacement is a gain (a node's cost goes, its children's boxes are
+/// tested in a node that is tested anyway); slots are replaced largest box
+/// first while any fit, pulled children included. The children come from
+/// the objects' wide layouts (as the builder's opening does), their world
+/// boxes as the builder makes them (`placed_bounds`).
+///
+/// This is the collapse step of a wide build carried across the boundary
+/// between the top level and the objects: the top-level tree is collapsed
+/// to 8 wide on its own, and its nodes hold 4.2-4.5 children on average on
+/// the shared scenes.
+fn pull_into_top_level(
+    wide: &mut WideBvh<8>,
+    entry_refs: &mut Vec<TopRef>,
+    entries: &mut Vec<RefEntry>,
+    objects: &[Option<Arc<ObjectBvh>>],
+    instances: &[InstanceXf],
+) {
+    // The entry a slot's single-ref leaf names and the child count of the
+    // object wide node it enters, if that node has children to pull.
+    let pullable = |leaf: u32, entries: &[RefEntry]| -> Option<(u32, usize)> {
+        if !is_leaf_ref(leaf) || leaf == WIDE_EMPTY {
+            return None;
+        }
+        let (first, count) = decode_leaf(leaf);
+        let e = entries[first as usize];
+        if count != 1 || e.wide == WIDE_EMPTY || is_leaf_ref(e.wide) {
+            return None;
+        }
+        let obj = objects.get(e.object as usize)?.as_deref()?;
+        let k = obj.wide.as_ref()?.wide.nodes[e.wide as usize].child_count();
+        Some((first, k))
+    };
+    for n in 0..wide.nodes.len() {
+        loop {
+            let node = &wide.nodes[n];
+            let used = node.child_count();
+            let free = 8 - used;
+            if free == 0 {
+                break;
+            }
+            let mut best: Option<(usize, u32, f32)> = None;
+            for s in 0..used {
+                if let Some((first, k)) = pullable(node.child[s], entries)
+                    && k - 1 <= free
+                {
+                    let area = node.child_bounds(s).half_area();
+                    if best.is_none_or(|b| area > b.2) {
+                        best = Some((s, first, area));
+                    }
+                }
+            }
+            let Some((s, first, _)) = best else { break };
+            let parent_box = wide.nodes[n].child_bounds(s);
+            let e = entries[first as usize];
+            let obj = objects[e.object as usize]
+                .as_deref()
+                .expect("pullable entries have objects");
+            let ow = &obj.wide.as_ref().expect("pullable entries are wide").wide;
+            let on = &ow.nodes[e.wide as usize];
+            let xf = (e.instance != INVALID_ID).then(|| &instances[e.instance as usize]);
+            for j in 0..on.child_count() {
+                let b = ow.slot_binary[e.wide as usize][j];
+                let child = TopRef {
+                    object: e.object,
+                    node: b,
+                    instance: e.instance,
+                    prims: obj.subtree_prims[b as usize],
+                };
+                let entry = RefEntry {
+                    wide: on.child[j],
+                    node: b,
+                    ..e
+                };
+                // The first child takes the ref's place (entry and slot).
+                let (slot, ri) = if j == 0 {
+                    entry_refs[first as usize] = child;
+                    entries[first as usize] = entry;
+                    (s, first)
+                } else {
+                    entry_refs.push(child);
+                    entries.push(entry);
+                    (used + j - 1, (entries.len() - 1) as u32)
+                };
+                let bounds = builder::placed_bounds(obj, xf, b, &parent_box);
+                wide.nodes[n].set_child(slot, &bounds, encode_leaf(ri, 1));
+                // The slot no longer holds a top-level binary node.
+                wide.slot_binary[n][slot] = WIDE_EMPTY;
+            }
+        }
+    }
 }
 
 /// Occlusion statistics of ref `r` seen from a top-level slot of box
@@ -485,6 +592,10 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
 impl TopLevelAccel {
     /// Assemble a committed top level and collapse its tree to 8 wide;
     /// traversal runs `kernel` (falling back to scalar when unavailable).
+    ///
+    /// With `pull_entry_nodes` (see [`RebraidParams::pull_entry_nodes`]) the
+    /// collapsed top level's empty slots are then filled from the object
+    /// nodes its refs enter ([`pull_into_top_level`]).
     pub fn new(
         tree: Bvh,
         refs: Vec<TopRef>,
@@ -492,14 +603,11 @@ impl TopLevelAccel {
         instances: Vec<InstanceXf>,
         build_stats: TopLevelBuildStats,
         kernel: Kernel,
+        pull_entry_nodes: bool,
     ) -> Self {
         let mut wide = WideBvh::<8>::from_bvh(&tree).ok().filter(|w| !w.is_empty());
-        if let Some(w) = &mut wide {
-            // Leaves index the refs directly (the tree has no index array).
-            w.prim_count = refs.len();
-            order_top_level(w, &refs, &objects, &instances);
-        }
-        let entries = refs
+        let mut entry_refs = refs.clone();
+        let mut entries: Vec<RefEntry> = refs
             .par_iter()
             .with_min_len(4096)
             .map(|r| RefEntry {
@@ -514,6 +622,14 @@ impl TopLevelAccel {
                 node: r.node,
             })
             .collect();
+        if let Some(w) = &mut wide {
+            if pull_entry_nodes {
+                pull_into_top_level(w, &mut entry_refs, &mut entries, &objects, &instances);
+            }
+            // Leaves index the entries directly (the tree has no index array).
+            w.prim_count = entry_refs.len();
+            order_top_level(w, &entry_refs, &objects, &instances);
+        }
         Self {
             tree,
             refs,
@@ -522,6 +638,7 @@ impl TopLevelAccel {
             build_stats,
             wide,
             kernel,
+            entry_refs,
             entries,
         }
     }
@@ -663,12 +780,14 @@ impl TopLevelAccel {
         (top + braided) / root_area
     }
 
-    /// How often each primitive of each placement is reachable: walks every
-    /// top-level leaf into its object subtree. Keys are (object, instance).
+    /// How often each primitive of each placement is reachable by traversal:
+    /// walks every entry ref (each the leaf of one slot of the wide top
+    /// level, which [`TopLevelAccel::validate`] checks) into its object
+    /// subtree. Keys are (object, instance).
     pub fn reachable_counts(&self) -> std::collections::HashMap<(u32, u32), Vec<u32>> {
         let mut counts: std::collections::HashMap<(u32, u32), Vec<u32>> = Default::default();
-        for leaf in self.tree.nodes.iter().filter(|n| n.is_leaf()) {
-            for r in &self.refs[leaf.prim_range()] {
+        {
+            for r in &self.entry_refs {
                 let Some(obj) = self.object(r) else { continue };
                 let c = counts
                     .entry((r.object, r.instance))
@@ -700,30 +819,7 @@ impl TopLevelAccel {
         let boxes: Vec<Aabb> = self
             .refs
             .par_iter()
-            .map(|r| match self.object(r) {
-                Some(obj) if r.instance == INVALID_ID => obj.nodes()[r.node as usize].bounds(),
-                Some(obj) => {
-                    let xf = &self.instances[r.instance as usize];
-                    let nodes = obj.nodes();
-                    let mut b = Aabb::EMPTY;
-                    let mut stack = vec![r.node as usize];
-                    while let Some(i) = stack.pop() {
-                        let n = &nodes[i];
-                        if n.is_leaf() {
-                            for t in &obj.mesh.triangles[n.prim_range()] {
-                                for v in t {
-                                    b = b.grow(xf.object_to_world.transform_point3(*v));
-                                }
-                            }
-                        } else {
-                            stack.push(n.index as usize);
-                            stack.push(n.index as usize + 1);
-                        }
-                    }
-                    b
-                }
-                None => Aabb::EMPTY,
-            })
+            .map(|r| self.placed_geometry_box(r))
             .collect();
         // Leaves hold refs in order, so the ref array is the primitive order.
         let tree = Bvh {
@@ -735,9 +831,35 @@ impl TopLevelAccel {
         }
         tree.validate(&boxes)?;
         if let Some(wide) = &self.wide {
-            wide.validate(&boxes)?;
+            // The wide tree's leaves index the entry refs: the refs, some
+            // replaced by their children when entry nodes were pulled up.
+            let entry_boxes: Vec<Aabb> = self
+                .entry_refs
+                .par_iter()
+                .map(|r| self.placed_geometry_box(r))
+                .collect();
+            if self.entries.len() != self.entry_refs.len() {
+                return Err("entries and entry refs differ in length".into());
+            }
+            for (i, (e, r)) in self.entries.iter().zip(&self.entry_refs).enumerate() {
+                let wide_of = self
+                    .object(r)
+                    .filter(|o| o.wide.is_some())
+                    .and_then(|o| o.wide_of.get(r.node as usize).copied())
+                    .unwrap_or(WIDE_EMPTY);
+                if (e.object, e.instance, e.node, e.wide) != (r.object, r.instance, r.node, wide_of)
+                {
+                    return Err(format!("entry {i} does not match its ref"));
+                }
+            }
+            wide.validate(&entry_boxes)?;
             let mut ordered = wide.clone();
-            order_top_level(&mut ordered, &self.refs, &self.objects, &self.instances);
+            order_top_level(
+                &mut ordered,
+                &self.entry_refs,
+                &self.objects,
+                &self.instances,
+            );
             if ordered != *wide {
                 return Err("top-level slots are not in occlusion order".into());
             }
@@ -755,9 +877,43 @@ impl TopLevelAccel {
         Ok(())
     }
 
-    /// Bytes of the top-level tree and refs (object BVHs not included).
+    /// What must lie inside the world box of ref `r`: for a direct ref its
+    /// node's box, for an instanced one the box of its transformed vertices
+    /// (the builder clips transformed boxes to their parents', so the
+    /// geometry is what must be inside); empty without an object.
+    fn placed_geometry_box(&self, r: &TopRef) -> Aabb {
+        match self.object(r) {
+            Some(obj) if r.instance == INVALID_ID => obj.nodes()[r.node as usize].bounds(),
+            Some(obj) => {
+                let xf = &self.instances[r.instance as usize];
+                let nodes = obj.nodes();
+                let mut b = Aabb::EMPTY;
+                let mut stack = vec![r.node as usize];
+                while let Some(i) = stack.pop() {
+                    let n = &nodes[i];
+                    if n.is_leaf() {
+                        for t in &obj.mesh.triangles[n.prim_range()] {
+                            for v in t {
+                                b = b.grow(xf.object_to_world.transform_point3(*v));
+                            }
+                        }
+                    } else {
+                        stack.push(n.index as usize);
+                        stack.push(n.index as usize + 1);
+                    }
+                }
+                b
+            }
+            None => Aabb::EMPTY,
+        }
+    }
+
+    /// Bytes of the top-level tree, its refs and the wide top level's
+    /// entries (object BVHs and the wide top-level nodes not included).
     pub fn top_bytes(&self) -> usize {
         std::mem::size_of_val(self.tree.nodes.as_slice())
             + std::mem::size_of_val(self.refs.as_slice())
+            + std::mem::size_of_val(self.entry_refs.as_slice())
+            + std::mem::size_of_val(self.entries.as_slice())
     }
 }
