@@ -555,7 +555,8 @@ fn pulled_entry_nodes_answer_right_and_fill_the_top_level() {
             for node in &wide.nodes {
                 let used = node.child_count();
                 for &c in &node.child[..used] {
-                    if !is_leaf_ref(c) {
+                    // Inner nodes, and copied blocks (no entry), pull nothing.
+                    if !is_leaf_ref(c) || decode_leaf(c).0 >= t.block_base {
                         continue;
                     }
                     let e = t.entries[decode_leaf(c).0 as usize];
@@ -581,4 +582,54 @@ fn pulled_entry_nodes_answer_right_and_fill_the_top_level() {
     // Lists opened down to object leaves have nothing left to pull; the
     // small budgets leave object nodes behind top-level leaves.
     assert!(pulled_anywhere > 0, "nothing pulled in any configuration");
+}
+
+/// Copying the blocks of directly placed object leaves into the top level
+/// (`RebraidParams::inline_leaf_blocks`): the same answers as brute force
+/// with and without it (with and without pulled entry nodes), the copies
+/// checked against the objects' blocks by `validate`, and no top-level slot
+/// left entering a direct object leaf through an entry.
+#[test]
+fn inlined_leaf_blocks_answer_right() {
+    use rebraid::bvh::wide::{decode_leaf, is_leaf_ref};
+    for seed in [5u64, 6] {
+        let model = overlapping_model(seed);
+        let world = model.world();
+        let rays = random_rays(&mut rng(seed + 70), &world, 250, SCENE_LO, SCENE_HI);
+        for (inline, pull) in [(false, false), (true, false), (true, true)] {
+            let what = format!("seed {seed} inline {inline} pull {pull}");
+            let mut scene = model.to_scene(rebraided(RebraidParams {
+                inline_leaf_blocks: inline,
+                pull_entry_nodes: pull,
+                ..Default::default()
+            }));
+            scene.commit().unwrap();
+            let t = top(&scene);
+            check_top(t, &model, &what);
+            check_scene(&scene, &world, &rays, false, &what);
+            assert_eq!(t.block_base as usize, t.entries.len(), "{what}");
+            assert_eq!(t.blocks.len(), t.block_entry.len(), "{what}");
+            if !inline {
+                assert!(t.blocks.is_empty(), "{what}");
+                continue;
+            }
+            assert!(!t.blocks.is_empty(), "{what}: nothing copied");
+            // `validate` compares the copies with the objects' blocks.
+            let mut bad = t.clone();
+            bad.blocks[0].v[0][0][0] += 1.0;
+            assert!(bad.validate().is_err(), "{what}: a changed copy passed");
+            for node in &t.wide.as_ref().expect("a top level").nodes {
+                for &c in &node.child[..node.child_count()] {
+                    if !is_leaf_ref(c) || decode_leaf(c).0 >= t.block_base {
+                        continue;
+                    }
+                    let e = t.entries[decode_leaf(c).0 as usize];
+                    assert!(
+                        e.instance != INVALID_ID || !is_leaf_ref(e.wide),
+                        "{what}: a direct leaf entered through an entry"
+                    );
+                }
+            }
+        }
+    }
 }

@@ -23,6 +23,7 @@ use crate::bvh::{BuildParams, BvhStats, Kernel, SahCosts, TraversalCounters};
 use crate::toplevel::builder::{RefSources, TopLevelScratch, build_top_level_with};
 use crate::toplevel::{
     BuildRef, InstanceXf, ObjectBvh, RebraidParams, TopLevelAccel, TopLevelBuildStats,
+    TopLevelLayout,
 };
 use crate::transform::check_transform;
 use crate::{Error, Hit, INVALID_ID, MeshBvh, Ray, SceneDesc, TriangleMesh};
@@ -692,7 +693,10 @@ impl Scene {
             instances,
             build_stats,
             self.params.kernel.unwrap_or_else(Kernel::best),
-            params.open && params.pull_entry_nodes,
+            TopLevelLayout {
+                pull_entry_nodes: params.open && params.pull_entry_nodes,
+                inline_leaf_blocks: params.inline_leaf_blocks,
+            },
         );
         #[cfg(debug_assertions)]
         if let Err(e) = accel.validate() {

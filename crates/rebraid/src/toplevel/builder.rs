@@ -158,6 +158,10 @@ pub struct RebraidParams {
     /// children in the top-level node it is already testing, instead of
     /// entering the object to test its node.
     pub pull_entry_nodes: bool,
+    /// Copy the triangle blocks of object leaves that top-level leaves enter
+    /// directly into the top level, so that traversal tests them without
+    /// entering the object (see [`super::TopLevelAccel::new`]).
+    pub inline_leaf_blocks: bool,
     /// Lists longer than this are opened, binned and partitioned with
     /// data-parallel loops, and their halves built as parallel tasks.
     pub parallel_threshold: usize,
@@ -180,6 +184,7 @@ impl Default for RebraidParams {
             open_rounds: 4,
             open_only_overlapping: false,
             pull_entry_nodes: true,
+            inline_leaf_blocks: true,
             parallel_threshold: 1024,
         }
     }

@@ -16,8 +16,8 @@ use glam::Affine3A;
 use rayon::prelude::*;
 
 use crate::bvh::occlusion_order::{OcclusionStats, order_for_occlusion};
-use crate::bvh::triangle4::{block_hit_record, intersect_blocks, leaf_occlusion};
-use crate::bvh::wide::{WIDE_EMPTY, decode_leaf, encode_leaf, is_leaf_ref};
+use crate::bvh::triangle4::{Triangle4, block_hit_record, intersect_blocks, leaf_occlusion};
+use crate::bvh::wide::{WIDE_EMPTY, WIDE_MAX_PRIMITIVES, decode_leaf, encode_leaf, is_leaf_ref};
 use crate::bvh::{
     BoxRay, BoxTester, Bvh, BvhNode, Kernel, SahCosts, TRAVERSAL_STACK, TesterFactory,
     TraversalCounters, WideBvh, WideQuery, WideTriangleBvh, subtree_with, traverse_with,
@@ -331,6 +331,84 @@ pub struct TopLevelAccel {
     pub entry_refs: Vec<TopRef>,
     /// One [`RefEntry`] per entry ref, made with the accel.
     pub entries: Vec<RefEntry>,
+    /// Copies of the triangle blocks of object leaves that top-level leaves
+    /// enter directly (see [`inline_leaf_blocks`]): a wide leaf whose first
+    /// index is at least `block_base` names `blocks[first - block_base..]`.
+    pub blocks: Vec<Triangle4>,
+    /// The entry each block of `blocks` was copied for.
+    pub block_entry: Vec<u32>,
+    /// Leaf indices from here on name `blocks`, below it `entries`.
+    pub block_base: u32,
+}
+
+/// How the top level is laid out for traversal, beyond the build.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TopLevelLayout {
+    /// See [`RebraidParams::pull_entry_nodes`].
+    pub pull_entry_nodes: bool,
+    /// See [`RebraidParams::inline_leaf_blocks`].
+    pub inline_leaf_blocks: bool,
+}
+
+/// Copy the triangle blocks of the object leaves that top-level leaves
+/// enter directly (one ref, no instance) into the top level, and point
+/// those leaves at the copies. Returns the blocks and the entry of each.
+///
+/// Re-braiding opens objects down to their leaves where they overlap (on
+/// the shared scenes 50-58% of the refs are object leaves, and on samurai
+/// monastery nearly every node a ray visits is a top-level node), so most
+/// entries test a few blocks and leave. Through the entry, that is a chain
+/// of loads (the entry, the object table, the object, its block array)
+/// before the first block load; from the top level's own array it is what
+/// a flat BVH's leaf costs. The copies cost 160 bytes per block and a copy
+/// per top-level build.
+///
+/// Instanced leaves stay entries. Copying them too (a second range of leaf
+/// indices whose rays are transformed through the instance ray cache) made
+/// the instanced scenes slower: one copy per placement undoes the sharing
+/// that instancing gives the caches (paired A/B, 30 alternations: cocoa
+/// temple 0.92-0.99, ravenbridge 0.93-0.98, 2CylinderEngine 0.96-0.98).
+fn inline_leaf_blocks(
+    wide: &mut WideBvh<8>,
+    entries: &[RefEntry],
+    objects: &[Option<Arc<ObjectBvh>>],
+) -> (Vec<Triangle4>, Vec<u32>) {
+    let block_base = entries.len();
+    let (mut blocks, mut block_entry) = (Vec::new(), Vec::new());
+    for node in &mut wide.nodes {
+        for slot in 0..node.child_count() {
+            let c = node.child[slot];
+            if !is_leaf_ref(c) {
+                continue;
+            }
+            let (ri, count) = decode_leaf(c);
+            let e = &entries[ri as usize];
+            if count != 1
+                || e.instance != INVALID_ID
+                || e.wide == WIDE_EMPTY
+                || !is_leaf_ref(e.wide)
+            {
+                continue;
+            }
+            let Some(ow) = objects
+                .get(e.object as usize)
+                .and_then(|o| o.as_deref())
+                .and_then(|o| o.wide.as_ref())
+            else {
+                continue;
+            };
+            let (first, n) = decode_leaf(e.wide);
+            let at = block_base + blocks.len();
+            if at + n as usize > WIDE_MAX_PRIMITIVES {
+                // Leaf indices have 27 bits: the rest stay entries.
+                continue;
+            }
+            blocks.extend_from_slice(&ow.blocks[first as usize..(first + n) as usize]);
+            block_entry.extend(std::iter::repeat_n(ri, n as usize));
+            node.child[slot] = encode_leaf(at as u32, n);
+        }
+    }
+    (blocks, block_entry)
 }
 
 /// Fill the empty slots of the collapsed top level's nodes with the child
@@ -503,6 +581,10 @@ fn order_top_level(
 /// reference within its object (see [`ObjectBvh::hit_record`]), ref index).
 type RefHit = (f32, f32, f32, u32, u32);
 
+/// The ref index of a [`RefHit`] in the top level's own copied blocks (the
+/// hit reference is then a lane of [`TopLevelAccel::blocks`]).
+const INLINE_HIT: u32 = u32::MAX;
+
 /// Prepared instance rays kept per ray (see `RayWalk`).
 const INSTANCE_CACHE: usize = 4;
 
@@ -547,6 +629,27 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
             self.counters,
             #[inline(always)]
             |first, count, t_max| {
+                if first >= a.block_base {
+                    // An object leaf's triangle blocks, copied into the top
+                    // level (see `inline_leaf_blocks`): tested here.
+                    inner.leaves_visited += 1;
+                    let wray = wray.get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
+                    let mut hit = None;
+                    let stop = intersect_blocks::<ANY>(
+                        &a.blocks,
+                        wray,
+                        ray.t_min,
+                        first - a.block_base,
+                        count,
+                        t_max,
+                        &mut hit,
+                        <F::Tester as BoxTester<8>>::SIMD_TRIANGLES,
+                    );
+                    if let Some((t, u, v, k)) = hit {
+                        best = Some((t, u, v, k, INLINE_HIT));
+                    }
+                    return stop;
+                }
                 for ri in first..first + count {
                     let r = &a.entries[ri as usize];
                     let Some(obj) = a.objects.get(r.object as usize).and_then(|o| o.as_deref())
@@ -593,9 +696,11 @@ impl TopLevelAccel {
     /// Assemble a committed top level and collapse its tree to 8 wide;
     /// traversal runs `kernel` (falling back to scalar when unavailable).
     ///
-    /// With `pull_entry_nodes` (see [`RebraidParams::pull_entry_nodes`]) the
-    /// collapsed top level's empty slots are then filled from the object
-    /// nodes its refs enter ([`pull_into_top_level`]).
+    /// `layout` says how: its `pull_entry_nodes` fills the collapsed top
+    /// level's empty slots from the object nodes its refs enter
+    /// ([`pull_into_top_level`]), its `inline_leaf_blocks` copies the blocks
+    /// of object leaves entered directly into the top level
+    /// ([`inline_leaf_blocks`]).
     pub fn new(
         tree: Bvh,
         refs: Vec<TopRef>,
@@ -603,7 +708,7 @@ impl TopLevelAccel {
         instances: Vec<InstanceXf>,
         build_stats: TopLevelBuildStats,
         kernel: Kernel,
-        pull_entry_nodes: bool,
+        layout: TopLevelLayout,
     ) -> Self {
         let mut wide = WideBvh::<8>::from_bvh(&tree).ok().filter(|w| !w.is_empty());
         let mut entry_refs = refs.clone();
@@ -623,13 +728,18 @@ impl TopLevelAccel {
             })
             .collect();
         if let Some(w) = &mut wide {
-            if pull_entry_nodes {
+            if layout.pull_entry_nodes {
                 pull_into_top_level(w, &mut entry_refs, &mut entries, &objects, &instances);
             }
             // Leaves index the entries directly (the tree has no index array).
             w.prim_count = entry_refs.len();
             order_top_level(w, &entry_refs, &objects, &instances);
         }
+        let block_base = entries.len() as u32;
+        let (blocks, block_entry) = match &mut wide {
+            Some(w) if layout.inline_leaf_blocks => inline_leaf_blocks(w, &entries, &objects),
+            _ => Default::default(),
+        };
         Self {
             tree,
             refs,
@@ -640,7 +750,28 @@ impl TopLevelAccel {
             kernel,
             entry_refs,
             entries,
+            blocks,
+            block_entry,
+            block_base,
         }
+    }
+
+    /// The wide top level as it indexes entries: leaves naming copied
+    /// blocks (see [`inline_leaf_blocks`]) named by their entry again.
+    fn wide_by_entry(&self) -> Option<WideBvh<8>> {
+        let mut w = self.wide.clone()?;
+        for node in &mut w.nodes {
+            for c in &mut node.child {
+                if is_leaf_ref(*c) && *c != WIDE_EMPTY {
+                    let (first, _) = decode_leaf(*c);
+                    if first >= self.block_base {
+                        let e = self.block_entry[(first - self.block_base) as usize];
+                        *c = encode_leaf(e, 1);
+                    }
+                }
+            }
+        }
+        Some(w)
     }
 
     #[inline(always)]
@@ -671,13 +802,18 @@ impl TopLevelAccel {
     }
 
     fn make_hit(&self, (t, u, v, k, ri): RefHit) -> Hit {
-        let e = &self.entries[ri as usize];
-        let obj = self
-            .objects
-            .get(e.object as usize)
-            .and_then(|o| o.as_deref())
-            .expect("hit refs have objects");
-        let (prim_id, normal) = obj.hit_record(e.wide, k);
+        let (e, (prim_id, normal)) = if ri == INLINE_HIT {
+            let e = &self.entries[self.block_entry[(k / 4) as usize] as usize];
+            (e, block_hit_record(&self.blocks, k))
+        } else {
+            let e = &self.entries[ri as usize];
+            let obj = self
+                .objects
+                .get(e.object as usize)
+                .and_then(|o| o.as_deref())
+                .expect("hit refs have objects");
+            (e, obj.hit_record(e.wide, k))
+        };
         let mut hit = Hit {
             t,
             u,
@@ -830,7 +966,46 @@ impl TopLevelAccel {
             return Err(format!("ref {i} has no object"));
         }
         tree.validate(&boxes)?;
-        if let Some(wide) = &self.wide {
+        if self.block_entry.len() != self.blocks.len() {
+            return Err("copied blocks and their entries differ in length".into());
+        }
+        // Each run of copied blocks is its entry's object leaf, bit for bit.
+        let mut b = 0;
+        while b < self.blocks.len() {
+            let ri = self.block_entry[b];
+            let e = &self.entries[ri as usize];
+            let ow = self
+                .objects
+                .get(e.object as usize)
+                .and_then(|o| o.as_deref())
+                .and_then(|o| o.wide.as_ref())
+                .ok_or_else(|| format!("copied block {b}: entry {ri} has no wide object"))?;
+            if e.instance != INVALID_ID || !is_leaf_ref(e.wide) || e.wide == WIDE_EMPTY {
+                return Err(format!("copied block {b}: entry {ri} is no direct leaf"));
+            }
+            let (first, n) = decode_leaf(e.wide);
+            // Bit for bit: padding lanes hold NaN vertices.
+            let bits = |blocks: &[Triangle4]| {
+                blocks
+                    .iter()
+                    .flat_map(|t| {
+                        t.v.as_flattened()
+                            .as_flattened()
+                            .iter()
+                            .map(|x| x.to_bits())
+                    })
+                    .chain(blocks.iter().flat_map(|t| t.prim))
+                    .collect::<Vec<u32>>()
+            };
+            let copy = self.blocks.get(b..b + n as usize).map(bits);
+            if copy != Some(bits(&ow.blocks[first as usize..(first + n) as usize])) {
+                return Err(format!(
+                    "copied blocks at {b} differ from entry {ri}'s leaf"
+                ));
+            }
+            b += n as usize;
+        }
+        if let Some(wide) = &self.wide_by_entry() {
             // The wide tree's leaves index the entry refs: the refs, some
             // replaced by their children when entry nodes were pulled up.
             let entry_boxes: Vec<Aabb> = self
