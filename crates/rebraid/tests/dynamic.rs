@@ -630,3 +630,38 @@ fn animated_transform_interpolates() {
     assert_eq!(scene.instance_transform(i).unwrap(), b);
     assert!(rebraid::animation::apply_animated_transform(&mut scene, 42, &x, 0.0).is_err());
 }
+
+/// The re-braided top level copies the triangle blocks of the object leaves
+/// it enters directly (`RebraidParams::inline_leaf_blocks`); a scene
+/// committed again hands the previous copies' buffer to the next top level
+/// instead of allocating (and paging in) another.
+#[test]
+fn copied_leaf_blocks_reuse_the_previous_commits_buffer() {
+    let mut s = Scene::with_params(SceneParams {
+        mode: AccelMode::Rebraided,
+        ..Default::default()
+    });
+    let m = wavy_grid(40, 0.0, 0.0);
+    let id = s.add_object(m.clone()).unwrap();
+    s.add_object(wavy_grid(40, 1.0, 0.5)).unwrap();
+    s.set_update_policy(id, UpdatePolicy::Refit).unwrap();
+    s.commit().unwrap();
+    let blocks = |s: &Scene| match s.accel() {
+        Accel::TopLevel(t) => (t.blocks.as_ptr(), t.blocks.len()),
+        _ => panic!("re-braided"),
+    };
+    let (p0, n0) = blocks(&s);
+    assert!(n0 > 0, "the overlapping grids open down to leaves");
+    let moved: Vec<Vec3> = m.positions.iter().map(|p| *p + Vec3::Y * 0.01).collect();
+    s.set_vertices(id, &moved).unwrap();
+    s.commit().unwrap();
+    let (p1, n1) = blocks(&s);
+    // A small move: as many blocks copied (or fewer), into the old buffer.
+    assert!(n1 > 0 && n1 <= n0, "{n1} blocks after {n0}");
+    assert_eq!(p1, p0, "the buffer was not reused");
+    // Without buffer reuse the scratch keeps nothing.
+    s.set_reuse_top_level_buffers(false);
+    s.set_vertices(id, &m.positions).unwrap();
+    s.commit().unwrap();
+    assert_eq!(s.top_level_buffer_bytes(), 0);
+}

@@ -528,6 +528,7 @@ impl Scene {
                 && !self.no_buffer_reuse
             {
                 self.top_scratch.recycle(old.tree.nodes, old.refs);
+                self.top_scratch.recycle_blocks(old.blocks);
                 objects_buf = old.objects;
                 instances_buf = old.instances;
                 objects_buf.clear();
@@ -682,6 +683,7 @@ impl Scene {
             &mut self.top_scratch
         };
         let built = build_top_level_with(&refs, src, &params, buffers);
+        let block_buffer = buffers.take_blocks();
         if !self.no_buffer_reuse {
             self.top_initial = refs;
         }
@@ -692,11 +694,12 @@ impl Scene {
             objects,
             instances,
             build_stats,
-            self.params.kernel.unwrap_or_else(Kernel::best),
             TopLevelLayout {
+                kernel: self.params.kernel.unwrap_or_else(Kernel::best),
                 pull_entry_nodes: params.open && params.pull_entry_nodes,
                 inline_leaf_blocks: params.inline_leaf_blocks,
             },
+            block_buffer,
         );
         #[cfg(debug_assertions)]
         if let Err(e) = accel.validate() {

@@ -55,6 +55,7 @@ use super::{InstanceXf, ObjectBvh, TopRef};
 use crate::bvh::binning::{
     BinBox, BinMapping, BinRange, Bins, MAX_BINS, SplitCandidate, with_bins,
 };
+use crate::bvh::triangle4::Triangle4;
 use crate::bvh::wide::WIDE_EMPTY;
 use crate::bvh::{Bvh, BvhNode, MEDIAN_FROM_DEPTH, compact_slots, split_slots};
 use crate::{Aabb, Error, INVALID_ID};
@@ -317,6 +318,9 @@ pub struct TopLevelScratch {
     slots: Vec<BvhNode>,
     nodes: Vec<BvhNode>,
     out_refs: Vec<TopRef>,
+    /// The previous top level's copied leaf blocks
+    /// ([`super::TopLevelAccel::blocks`]), for the next one's.
+    blocks: Vec<Triangle4>,
 }
 
 impl TopLevelScratch {
@@ -331,12 +335,28 @@ impl TopLevelScratch {
         }
     }
 
+    /// Hand back a previous top level's copied leaf blocks.
+    pub fn recycle_blocks(&mut self, blocks: Vec<Triangle4>) {
+        if blocks.capacity() > self.blocks.capacity() {
+            self.blocks = blocks;
+        }
+    }
+
+    /// The block buffer for the next top level (empty; the scratch keeps
+    /// none until one is handed back).
+    pub fn take_blocks(&mut self) -> Vec<Triangle4> {
+        let mut b = std::mem::take(&mut self.blocks);
+        b.clear();
+        b
+    }
+
     /// Bytes held by the buffers.
     pub fn bytes(&self) -> usize {
         use std::mem::size_of;
         (self.refs.capacity() + self.scratch.capacity()) * size_of::<BuildRef>()
             + (self.slots.capacity() + self.nodes.capacity()) * size_of::<BvhNode>()
             + self.out_refs.capacity() * size_of::<TopRef>()
+            + self.blocks.capacity() * size_of::<Triangle4>()
     }
 
     /// Free every buffer.
