@@ -442,7 +442,7 @@ fn inline_leaf_blocks(
 ///
 /// This is the collapse step of a wide build carried across the boundary
 /// between the top level and the objects: the top-level tree is collapsed
-/// to 8 wide on its own, and its nodes hold 4.2-4.5 children on average on
+/// to 8 wide on its own, and its nodes hold 4.3-4.7 children on average on
 /// the shared scenes.
 fn pull_into_top_level(
     wide: &mut WideBvh<8>,
