@@ -357,7 +357,7 @@ pub struct TopLevelLayout {
 /// those leaves at the copies. Returns the blocks and the entry of each.
 ///
 /// Re-braiding opens objects down to their leaves where they overlap (on
-/// the shared scenes 50-58% of the refs are object leaves, and on samurai
+/// the shared scenes 44-58% of the refs are object leaves, and on samurai
 /// monastery nearly every node a ray visits is a top-level node), so most
 /// entries test a few blocks and leave. Through the entry, that is a chain
 /// of loads (the entry, the object table, the object, its block array)
@@ -879,7 +879,10 @@ impl TopLevelAccel {
 
     /// The SAH statistic of the tree as traversed: from the top-level root
     /// down into the shared object nodes (world-space boxes; a ref's node is
-    /// counted once, as the top-level leaf that tests its box).
+    /// counted once, as the top-level leaf that tests its box). It walks the
+    /// build's binary tree, so it does not see the layout steps after the
+    /// build (pulled entry nodes, copied leaf blocks), which only remove
+    /// node tests and entries.
     pub fn sah_cost(&self, costs: SahCosts) -> f64 {
         let Some(root) = self.tree.nodes.first() else {
             return 0.0;
@@ -943,24 +946,22 @@ impl TopLevelAccel {
     /// subtree. Keys are (object, instance).
     pub fn reachable_counts(&self) -> std::collections::HashMap<(u32, u32), Vec<u32>> {
         let mut counts: std::collections::HashMap<(u32, u32), Vec<u32>> = Default::default();
-        {
-            for r in &self.entry_refs {
-                let Some(obj) = self.object(r) else { continue };
-                let c = counts
-                    .entry((r.object, r.instance))
-                    .or_insert_with(|| vec![0; obj.mesh.len()]);
-                let nodes = obj.nodes();
-                let mut stack = vec![r.node as usize];
-                while let Some(i) = stack.pop() {
-                    let n = &nodes[i];
-                    if n.is_leaf() {
-                        for k in n.prim_range() {
-                            c[obj.mesh.bvh.prim_indices[k] as usize] += 1;
-                        }
-                    } else {
-                        stack.push(n.index as usize);
-                        stack.push(n.index as usize + 1);
+        for r in &self.entry_refs {
+            let Some(obj) = self.object(r) else { continue };
+            let c = counts
+                .entry((r.object, r.instance))
+                .or_insert_with(|| vec![0; obj.mesh.len()]);
+            let nodes = obj.nodes();
+            let mut stack = vec![r.node as usize];
+            while let Some(i) = stack.pop() {
+                let n = &nodes[i];
+                if n.is_leaf() {
+                    for k in n.prim_range() {
+                        c[obj.mesh.bvh.prim_indices[k] as usize] += 1;
                     }
+                } else {
+                    stack.push(n.index as usize);
+                    stack.push(n.index as usize + 1);
                 }
             }
         }
