@@ -1105,12 +1105,15 @@ impl TopLevelAccel {
         }
     }
 
-    /// Bytes of the top-level tree, its refs and the wide top level's
-    /// entries (object BVHs and the wide top-level nodes not included).
+    /// Bytes of the top-level tree, its refs, the wide top level's entries
+    /// and its copied leaf blocks (object BVHs and the wide top-level nodes
+    /// not included).
     pub fn top_bytes(&self) -> usize {
         std::mem::size_of_val(self.tree.nodes.as_slice())
             + std::mem::size_of_val(self.refs.as_slice())
             + std::mem::size_of_val(self.entry_refs.as_slice())
             + std::mem::size_of_val(self.entries.as_slice())
+            + std::mem::size_of_val(self.blocks.as_slice())
+            + std::mem::size_of_val(self.block_entry.as_slice())
     }
 }
