@@ -724,11 +724,7 @@ impl Scene {
 
     /// True when anything is hit within the ray's interval.
     pub fn occluded(&self, ray: &Ray) -> bool {
-        match &self.accel {
-            Accel::Empty => false,
-            Accel::Flat(f) => f.occluded(ray),
-            Accel::TopLevel(t) => t.occluded(ray),
-        }
+        self.occluded_counted(ray, &mut TraversalCounters::default())
     }
 
     /// Occlusion, counting the nodes and leaves visited (see

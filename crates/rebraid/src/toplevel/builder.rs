@@ -567,7 +567,7 @@ fn child_ref(ctx: &Ctx, r: &BuildRef, i: u32) -> BuildRef {
         .expect("validated");
     let xf = (r.instance != INVALID_ID).then(|| &ctx.src.instances[r.instance as usize]);
     BuildRef {
-        bounds: placed_bounds(obj, xf, i, &r.bounds),
+        bounds: placed_bounds(obj, xf, i, obj.nodes()[i as usize].bounds(), &r.bounds),
         object: r.object,
         node: i,
         instance: r.instance,
@@ -576,8 +576,9 @@ fn child_ref(ctx: &Ctx, r: &BuildRef, i: u32) -> BuildRef {
     }
 }
 
-/// World box of binary node `node` of `obj` placed by `xf` (directly when
-/// `None`) as a child of a ref whose world box is `parent`.
+/// World box of binary node `node` of `obj`, whose object-space box is
+/// `local`, placed by `xf` (directly when `None`) as a child of a ref whose
+/// world box is `parent`.
 ///
 /// An instanced leaf's world box is that of its transformed vertices (a
 /// handful): much tighter than the transformed local box under rotation.
@@ -588,19 +589,21 @@ pub(crate) fn placed_bounds(
     obj: &ObjectBvh,
     xf: Option<&InstanceXf>,
     node: u32,
+    local: Aabb,
     parent: &Aabb,
 ) -> Aabb {
+    let Some(xf) = xf else { return local };
     let node = &obj.nodes()[node as usize];
-    match xf {
-        None => node.bounds(),
-        Some(xf) if node.is_leaf() => obj.mesh.triangles[node.prim_range()]
+    if node.is_leaf() {
+        obj.mesh.triangles[node.prim_range()]
             .iter()
             .flatten()
             .fold(Aabb::EMPTY, |b, v| {
                 b.grow(xf.object_to_world.transform_point3(*v))
             })
-            .intersection(*parent),
-        Some(xf) => xf.world_box(&node.bounds()).intersection(*parent),
+            .intersection(*parent)
+    } else {
+        xf.world_box(&local).intersection(*parent)
     }
 }
 

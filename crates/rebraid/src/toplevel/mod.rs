@@ -517,12 +517,9 @@ fn pull_into_top_level(
                     entries.push(entry);
                     (used + j - 1, (entries.len() - 1) as u32)
                 };
-                // Direct: the wide slot holds the node's box exactly (and
-                // in the node just read, unlike the binary node).
-                let bounds = match xf {
-                    None => on.child_bounds(j),
-                    Some(_) => builder::placed_bounds(obj, xf, b, &parent_box),
-                };
+                // The wide slot holds the node's box exactly, in the node
+                // just read (the binary node would be another load).
+                let bounds = builder::placed_bounds(obj, xf, b, on.child_bounds(j), &parent_box);
                 wide.nodes[n].set_child(slot, &bounds, encode_leaf(ri, 1));
                 // The slot no longer holds a top-level binary node.
                 wide.slot_binary[n][slot] = WIDE_EMPTY;
@@ -662,7 +659,12 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
                         &mut hit,
                         <F::Tester as BoxTester<8>>::SIMD_TRIANGLES,
                     );
-                    if let Some((t, u, v, k)) = hit {
+                    // The entries' tie rule: an equal distance keeps the
+                    // earlier hit (the blocks were tested against `t_max`
+                    // inclusive, which equals the best hit's distance).
+                    if let Some((t, u, v, k)) = hit
+                        && (ANY || best.is_none_or(|b: RefHit| t < b.0))
+                    {
                         best = Some((t, u, v, k, INLINE_HIT));
                     }
                     return stop;
