@@ -350,6 +350,15 @@ struct EmbreeWorkerArgs {
 }
 
 fn main() -> ExitCode {
+    // A closed stdout (`rebraid stats ... | head -1`) ends the process
+    // quietly, as it does any Unix filter: Rust ignores SIGPIPE, so every
+    // `println!` after the reader left would panic with a backtrace.
+    #[cfg(unix)]
+    // SAFETY: called first thing, before any other thread exists; setting a
+    // signal's disposition to its default action has no other effect.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let cli = Cli::parse();
     let result = match cli.command {
         None => run_render(RenderArgs::parse_from(["render"])),

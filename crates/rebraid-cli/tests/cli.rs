@@ -555,6 +555,32 @@ fn stats_library_json() {
     assert!(modes[2]["refs_opened"].as_u64().unwrap() > 0, "{v}");
 }
 
+/// A reader that stops early (`rebraid stats library | head -1`) ends the
+/// tool quietly: no panic about a broken pipe on stderr.
+#[cfg(unix)]
+#[test]
+fn closed_stdout_ends_quietly() {
+    use std::io::{BufRead, BufReader};
+    use std::process::Stdio;
+    let dir = tempfile::tempdir().unwrap();
+    let mut child = Command::new(EXE)
+        .args(["stats", "library", "--scale", "0.02"])
+        .current_dir(dir.path())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("running the rebraid binary");
+    let mut first = String::new();
+    BufReader::new(child.stdout.take().expect("piped stdout"))
+        .read_line(&mut first)
+        .expect("reading the first line");
+    // The reader is dropped here: the pipe is closed with output pending.
+    let out = child.wait_with_output().expect("waiting for rebraid");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(first.starts_with("library"), "first line: {first:?}");
+    assert!(!err.contains("panicked"), "stderr:\n{err}");
+}
+
 #[test]
 fn bad_arguments_exit_with_one_error_line() {
     let dir = tempfile::tempdir().unwrap();
