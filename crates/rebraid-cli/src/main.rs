@@ -84,6 +84,11 @@ struct SceneOpts {
     /// Re-braiding: opening rounds per build step (the paper: 1).
     #[arg(long)]
     open_rounds: Option<usize>,
+    /// Two-level modes: keep objects that one instance places as instances
+    /// (by default they are traced from world-space BVHs while the instance
+    /// does not move).
+    #[arg(long)]
+    no_bake_instances: bool,
     /// Largest leaf of object (and flat) BVHs.
     #[arg(long)]
     max_leaf: Option<u32>,
@@ -136,6 +141,7 @@ impl SceneOpts {
             }
         }
         r.open_instances = !self.no_open_instances;
+        r.bake_single_instances = !self.no_bake_instances;
         r.open_only_overlapping = self.open_only_overlapping;
         if let Some(k) = self.open_rounds {
             r.open_rounds = k;

@@ -633,3 +633,60 @@ fn inlined_leaf_blocks_answer_right() {
         }
     }
 }
+
+/// Objects placed by exactly one instance traced from world-space BVHs
+/// (`RebraidParams::bake_single_instances`): the same answers as brute
+/// force with and without it in both two-level modes, hits on them naming
+/// their object and instance (`check_scene` compares ids), every placement
+/// reachable once under its (object, instance) key (`check_top`), and the
+/// baked objects' leaves copied into the top level like direct ones.
+#[test]
+fn baked_placements_answer_right() {
+    for seed in [11u64, 12] {
+        let (model, singles) = single_use_model(seed);
+        let world = model.world();
+        let rays = random_rays(&mut rng(seed + 80), &world, 300, SCENE_LO, SCENE_HI);
+        for mode in [AccelMode::TwoLevel, AccelMode::Rebraided] {
+            for bake in [false, true] {
+                let what = format!("seed {seed} {mode:?} bake {bake}");
+                let mut scene = model.to_scene(SceneParams {
+                    mode,
+                    rebraid: RebraidParams {
+                        bake_single_instances: bake,
+                        ..Default::default()
+                    },
+                    ..Default::default()
+                });
+                let rep = scene.commit().unwrap();
+                let t = top(&scene);
+                check_top(t, &model, &what);
+                let tally = check_scene(&scene, &world, &rays, false, &what);
+                assert!(tally.hits > 50, "{what}: {tally:?}");
+                let mut baked = rep.instances_baked.clone();
+                baked.sort_unstable();
+                if !bake {
+                    assert!(baked.is_empty() && t.baked.is_empty(), "{what}");
+                    continue;
+                }
+                assert_eq!(baked, singles, "{what}");
+                assert_eq!(t.baked.len(), singles.len(), "{what}");
+                for &(obj, inst) in &t.baked {
+                    assert_eq!(model.instances[&inst].0, obj, "{what}");
+                }
+                // Some rays hit a baked placement, and report it.
+                let baked_hits = rays
+                    .iter()
+                    .filter_map(|r| scene.intersect(r))
+                    .filter(|h| singles.contains(&h.instance_id))
+                    .count();
+                assert!(baked_hits > 0, "{what}: no ray hit a baked placement");
+                // A baked slot entered through an instance fails validation.
+                if let Some(i) = t.refs.iter().position(|r| r.object >= t.baked_base) {
+                    let mut bad = t.clone();
+                    bad.refs[i].instance = 0;
+                    assert!(bad.validate().is_err(), "{what}");
+                }
+            }
+        }
+    }
+}

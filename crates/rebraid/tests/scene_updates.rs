@@ -189,6 +189,102 @@ fn edits_are_reflected_and_only_changed_objects_rebuilt() {
     }
 }
 
+/// Baked placements (`RebraidParams::bake_single_instances`) through
+/// edits: an instance stays baked until it moves, after which its object's
+/// BVH is built in object space once and later moves build nothing; a
+/// second instance un-bakes an object and removing it bakes the first
+/// again; new vertices rebuild a baked object in world space; a refitted
+/// object is not baked; and turning the policy off un-bakes all. Answers
+/// are checked against the brute force after every commit (`verify`).
+#[test]
+fn single_instance_placements_are_baked_until_they_move() {
+    let sorted = |v: &[u32]| {
+        let mut v = v.to_vec();
+        v.sort_unstable();
+        v
+    };
+    for mode in [AccelMode::TwoLevel, AccelMode::Rebraided] {
+        let (mut model, singles) = single_use_model(21);
+        let mut scene = model.to_scene(params(mode));
+        let object_of = |m: &Model, i: u32| m.instances[&i].0;
+        let all: Vec<u32> = model.objects.keys().copied().collect();
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &all, 31, "first commit");
+        assert_eq!(sorted(&rep.instances_baked), singles, "{mode:?}");
+        let mut rng = rng(22);
+
+        // A baked instance moves: its object is built in object space.
+        let (i0, o0) = (singles[0], object_of(&model, singles[0]));
+        for (k, seed) in [(1, 32), (2, 33)] {
+            let xf = random_transform(&mut rng, SCENE_LO, SCENE_HI, true);
+            scene.set_instance_transform(i0, xf).unwrap();
+            model.instances.get_mut(&i0).unwrap().1 = xf;
+            let rep = scene.commit().unwrap();
+            // Only the first move builds.
+            let want = if k == 1 { vec![o0] } else { vec![] };
+            verify(&scene, &model, &rep, &want, seed, "baked instance moved");
+            assert_eq!(sorted(&rep.instances_baked), singles[1..], "{mode:?}");
+        }
+
+        // The transform it has, set again: no edit, still baked.
+        let i1 = singles[1];
+        let xf1 = model.instances[&i1].1;
+        scene.set_instance_transform(i1, xf1).unwrap();
+        assert!(!scene.needs_commit(), "{mode:?}");
+
+        // A second instance of a baked object un-bakes it; removing the
+        // second instance bakes the first (never moved) again.
+        let o1 = object_of(&model, i1);
+        let xf = random_transform(&mut rng, SCENE_LO, SCENE_HI, true);
+        let extra = model.add_instance(&mut scene, o1, xf);
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[o1], 34, "second instance");
+        assert!(!rep.instances_baked.contains(&i1), "{mode:?}");
+        scene.remove_instance(extra).unwrap();
+        model.instances.remove(&extra);
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[o1], 35, "second instance removed");
+        assert!(rep.instances_baked.contains(&i1), "{mode:?}");
+
+        // New vertices: rebuilt, in world space.
+        let (i2, o2) = (singles[2], object_of(&model, singles[2]));
+        let v = jitter(&mut rng, &model.objects[&o2].0);
+        scene.set_vertices(o2, &v).unwrap();
+        model.objects.get_mut(&o2).unwrap().0.positions = v;
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[o2], 36, "baked object's vertices");
+        assert!(rep.instances_baked.contains(&i2), "{mode:?}");
+
+        // A refitted object deforms in object space: not baked.
+        let (i3, o3) = (singles[3], object_of(&model, singles[3]));
+        scene
+            .set_update_policy(o3, rebraid::UpdatePolicy::Refit)
+            .unwrap();
+        let rep = scene.commit().unwrap();
+        verify(&scene, &model, &rep, &[o3], 37, "refit policy");
+        assert!(!rep.instances_baked.contains(&i3), "{mode:?}");
+
+        // The policy off: every baked object is built in object space.
+        let baked_objects: Vec<u32> = rep
+            .instances_baked
+            .iter()
+            .map(|&i| object_of(&model, i))
+            .collect();
+        assert!(!baked_objects.is_empty(), "{mode:?}");
+        scene.params.rebraid.bake_single_instances = false;
+        let rep = scene.commit().unwrap();
+        verify(
+            &scene,
+            &model,
+            &rep,
+            &sorted(&baked_objects),
+            38,
+            "policy off",
+        );
+        assert!(rep.instances_baked.is_empty(), "{mode:?}");
+    }
+}
+
 #[test]
 fn queries_answer_from_the_last_commit() {
     let mut rng = rng(41);

@@ -7,6 +7,17 @@
 //! (in parallel across objects, and in parallel within a large object), then
 //! the top level, in the [`AccelMode`] the scene is set to. Queries answer
 //! from the last commit; before the first commit they hit nothing.
+//!
+//! In the two-level modes an object that exactly one instance places, and
+//! that instance has never moved, is *baked*: its BVH is built over its
+//! transformed vertices and the top level treats it as directly placed,
+//! while hits still name the instance
+//! ([`crate::toplevel::RebraidParams::bake_single_instances`]). Scene files
+//! place every mesh through a node, so most such instances are plain
+//! placements, and traced directly they need no instance ray. The first move
+//! of a baked instance makes the next commit build its object in object
+//! space, once; from then on moves cost no object build, as for any
+//! instance. [`CommitReport::instances_baked`] lists the baked instances.
 
 mod flat;
 
@@ -106,7 +117,11 @@ pub enum UpdatePolicy {
 struct Object {
     mesh: TriangleMesh,
     placed: bool,
+    /// The object-space BVH (`None` while the object is baked).
     bvh: Option<Arc<ObjectBvh>>,
+    /// The world-space BVH of the one instance that places the object, while
+    /// it is baked (see [`RebraidParams::bake_single_instances`]).
+    baked: Option<Baked>,
     /// The mesh changed since `bvh` was built.
     dirty: bool,
     /// The triangles (indices) changed since `bvh` was built: rebuild.
@@ -126,10 +141,20 @@ impl Object {
     }
 }
 
+/// A placement traced from a BVH over its object's transformed vertices.
+struct Baked {
+    instance: InstanceId,
+    bvh: Arc<ObjectBvh>,
+}
+
 #[derive(Clone, Copy)]
 struct Instance {
     object: ObjectId,
     xf: InstanceXf,
+    /// May be baked: false once its transform changed (a moving instance
+    /// stays an instance, whose moves cost nothing to rebuild) or once its
+    /// transformed vertices were not finite.
+    bakeable: bool,
 }
 
 /// The committed acceleration structure.
@@ -157,6 +182,11 @@ pub struct CommitReport {
     pub triangles_rebuilt: usize,
     /// Triangles of the refitted objects.
     pub triangles_refitted: usize,
+    /// Instances traced from a BVH over their object's transformed
+    /// vertices after this commit (two-level modes; see
+    /// [`RebraidParams::bake_single_instances`]). Their objects' BVH
+    /// builds count in `objects_rebuilt` like object-space ones.
+    pub instances_baked: Vec<InstanceId>,
     /// Building the BVHs of `objects_rebuilt`.
     pub object_build_ms: f64,
     /// Refitting the BVHs of `objects_refitted`.
@@ -232,6 +262,7 @@ impl Scene {
             mesh,
             placed: true,
             bvh: None,
+            baked: None,
             dirty: true,
             topology_changed: true,
             policy: UpdatePolicy::default(),
@@ -368,11 +399,16 @@ impl Scene {
         self.instances.push(Some(Instance {
             object,
             xf: InstanceXf::new(transform),
+            bakeable: true,
         }));
         self.changed = true;
         Ok(self.instances.len() as u32 - 1)
     }
 
+    /// Move an instance. An instance that moves is never baked again (see
+    /// [`RebraidParams::bake_single_instances`]): if it was, the next commit
+    /// builds its object's BVH in object space, once, and later moves cost
+    /// no object build. Setting the transform it has changes nothing.
     pub fn set_instance_transform(
         &mut self,
         id: InstanceId,
@@ -384,6 +420,10 @@ impl Scene {
             .get_mut(id as usize)
             .and_then(|i| i.as_mut())
             .ok_or(Error::UnknownInstance(id))?;
+        if inst.xf.object_to_world == transform {
+            return Ok(());
+        }
+        inst.bakeable = false;
         inst.xf = InstanceXf::new(transform);
         self.changed = true;
         Ok(())
@@ -535,18 +575,31 @@ impl Scene {
                 instances_buf.clear();
             }
 
-            // Object BVHs of changed objects, in parallel across objects.
+            // Object BVHs of changed objects, in parallel across objects:
+            // in world space for an object baked with its one instance
+            // (built when it becomes baked or its mesh changed), else in
+            // object space (built when changed or when it stops being
+            // baked).
             let t = Instant::now();
-            let todo: Vec<usize> = self
-                .objects
-                .iter()
-                .enumerate()
-                .filter(|(_, o)| {
-                    o.as_ref()
-                        .is_some_and(|o| (o.dirty || o.bvh.is_none()) && !o.can_refit())
-                })
-                .map(|(i, _)| i)
-                .collect();
+            let bake_for = self.bake_targets();
+            let mut todo: Vec<(usize, Option<InstanceId>)> = Vec::new();
+            for (i, o) in self.objects.iter_mut().enumerate() {
+                let Some(o) = o else { continue };
+                match bake_for[i] {
+                    Some(inst) => {
+                        let current = o.baked.as_ref().is_some_and(|b| b.instance == inst);
+                        if o.dirty || !current {
+                            todo.push((i, Some(inst)));
+                        }
+                    }
+                    None => {
+                        o.baked = None;
+                        if (o.dirty || o.bvh.is_none()) && !o.can_refit() {
+                            todo.push((i, None));
+                        }
+                    }
+                }
+            }
             let params = &self.params.object_build;
             // The whole object structure (binary build, wide collapse,
             // Triangle4 packing) per task: the collapse and packing were a
@@ -557,18 +610,62 @@ impl Scene {
             // small ones, found nothing to steal but their inner joins
             // (openarena, 51 objects, two threads: 6.7-6.8 -> 5.0-5.3 ms,
             // nexuiz 13.9-14.4 -> 12.6-13.2 ms; one thread equal).
-            let built: Vec<(usize, Result<ObjectBvh, Error>)> = todo
+            // (object, instance asked to bake, instance baked, BVH).
+            type Built = (
+                usize,
+                Option<InstanceId>,
+                Option<InstanceId>,
+                Result<ObjectBvh, Error>,
+            );
+            let built: Vec<Built> = todo
                 .par_iter()
                 .with_max_len(1)
-                .map(|&i| {
+                .map(|&(i, bake)| {
                     let o = self.objects[i].as_ref().expect("listed above");
-                    (i, MeshBvh::build(&o.mesh, params).map(ObjectBvh::new))
+                    let baked = bake.and_then(|inst| {
+                        let xf = self.instances[inst as usize]
+                            .as_ref()
+                            .expect("bake targets are live")
+                            .xf
+                            .object_to_world;
+                        let positions = o.mesh.positions.iter().map(|&p| xf.transform_point3(p));
+                        let world = TriangleMesh {
+                            positions: positions.collect(),
+                            indices: o.mesh.indices.clone(),
+                        };
+                        // Not finite (a huge scale): the instance stays one.
+                        world.validate().ok()?;
+                        Some((inst, MeshBvh::build(&world, params).map(ObjectBvh::new)))
+                    });
+                    match baked {
+                        Some((inst, r)) => (i, bake, Some(inst), r),
+                        None => {
+                            let r = MeshBvh::build(&o.mesh, params).map(ObjectBvh::new);
+                            (i, bake, None, r)
+                        }
+                    }
                 })
                 .collect();
-            for (i, r) in built {
+            for (i, asked, baked, r) in built {
+                let bvh = Arc::new(r?);
+                if let Some(inst) = asked
+                    && baked.is_none()
+                    && let Some(x) = self.instances[inst as usize].as_mut()
+                {
+                    x.bakeable = false;
+                }
                 let o = self.objects[i].as_mut().expect("listed above");
                 report.triangles_rebuilt += o.mesh.len();
-                o.bvh = Some(Arc::new(r?));
+                match baked {
+                    Some(instance) => {
+                        o.baked = Some(Baked { instance, bvh });
+                        o.bvh = None;
+                    }
+                    None => {
+                        o.baked = None;
+                        o.bvh = Some(bvh);
+                    }
+                }
                 o.dirty = false;
                 o.topology_changed = false;
                 report.objects_rebuilt.push(i as u32);
@@ -584,7 +681,7 @@ impl Scene {
                 .enumerate()
                 .filter_map(|(i, o)| {
                     let o = o.as_mut()?;
-                    if !(o.dirty && o.can_refit()) {
+                    if !(o.dirty && o.baked.is_none() && o.can_refit()) {
                         return None;
                     }
                     let bvh = Arc::make_mut(o.bvh.as_mut()?);
@@ -605,6 +702,7 @@ impl Scene {
             let t = Instant::now();
             let top = self.build_top(mode, objects_buf, instances_buf)?;
             report.top_build_ms = t.elapsed().as_secs_f64() * 1e3;
+            report.instances_baked = top.baked.iter().map(|&(_, i)| i).collect();
             report.top = Some(top.build_stats.clone());
             self.accel = if top.tree.is_empty() {
                 Accel::Empty
@@ -615,6 +713,35 @@ impl Scene {
         self.changed = false;
         report.total_ms = start.elapsed().as_secs_f64() * 1e3;
         Ok(report)
+    }
+
+    /// Per object slot, the instance to bake it with, if any: the object is
+    /// live, not placed itself, has a non-empty mesh and the
+    /// [`UpdatePolicy::Rebuild`] policy (a refitted object deforms; its
+    /// refits stay in object space), and exactly one live instance places
+    /// it, which has never moved (see
+    /// [`RebraidParams::bake_single_instances`]).
+    fn bake_targets(&self) -> Vec<Option<InstanceId>> {
+        let mut target = vec![None; self.objects.len()];
+        if !self.params.rebraid.bake_single_instances {
+            return target;
+        }
+        let mut count = vec![0u32; self.objects.len()];
+        for (id, inst) in self.instances.iter().enumerate() {
+            if let Some(inst) = inst {
+                count[inst.object as usize] += 1;
+                target[inst.object as usize] = inst.bakeable.then_some(id as u32);
+            }
+        }
+        for (t, (o, n)) in target.iter_mut().zip(self.objects.iter().zip(count)) {
+            let eligible = o.as_ref().is_some_and(|o| {
+                !o.placed && !o.mesh.is_empty() && o.policy == UpdatePolicy::Rebuild
+            });
+            if n != 1 || !eligible {
+                *t = None;
+            }
+        }
+        target
     }
 
     /// Initial refs (object roots and instance roots) and the top-level
@@ -630,6 +757,18 @@ impl Scene {
                 .and_then(|o| o.bvh.clone())
                 .filter(|b| !b.mesh.is_empty())
         }));
+        // Baked placements' world-space BVHs in the slots after the objects.
+        let baked_base = objects.len();
+        let mut baked = Vec::new();
+        for (id, o) in self.objects.iter().enumerate() {
+            if let Some(b) = o.as_ref().and_then(|o| o.baked.as_ref()) {
+                objects.push(Some(b.bvh.clone()));
+                baked.push((id as u32, b.instance));
+            }
+        }
+        if objects.len() >= INVALID_ID as usize {
+            return Err(Error::TooManyPrimitives(objects.len()));
+        }
         instances.extend(
             self.instances
                 .iter()
@@ -651,8 +790,28 @@ impl Scene {
                 });
             }
         }
+        for (k, &(_, instance)) in baked.iter().enumerate() {
+            let slot = baked_base + k;
+            let bvh = objects[slot].as_ref().expect("pushed above");
+            refs.push(BuildRef {
+                bounds: bvh.mesh.bvh.bounds(),
+                object: slot as u32,
+                node: 0,
+                instance: INVALID_ID,
+                prims: bvh.mesh.len() as u32,
+                cost: bvh.subtree_cost[0],
+            });
+            debug_assert!(self.instances[instance as usize].is_some());
+        }
         for (id, inst) in self.instances.iter().enumerate() {
+            let is_baked = |inst: &Instance| {
+                self.objects[inst.object as usize]
+                    .as_ref()
+                    .and_then(|o| o.baked.as_ref())
+                    .is_some_and(|b| b.instance == id as u32)
+            };
             if let Some(inst) = inst
+                && !is_baked(inst)
                 && let Some(bvh) = &objects[inst.object as usize]
             {
                 refs.push(BuildRef {
@@ -700,7 +859,8 @@ impl Scene {
                 inline_leaf_blocks: params.inline_leaf_blocks,
             },
             block_buffer,
-        );
+        )
+        .with_baked(baked)?;
         #[cfg(debug_assertions)]
         if let Err(e) = accel.validate() {
             panic!("top-level builder produced an invalid tree: {e}");

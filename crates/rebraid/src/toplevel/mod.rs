@@ -315,7 +315,9 @@ pub struct TopLevelAccel {
     /// The top-level tree; leaves index into `refs`.
     pub tree: Bvh,
     pub refs: Vec<TopRef>,
-    /// Object BVHs by object id (`None` for removed or empty objects).
+    /// Object BVHs by object id (`None` for removed or empty objects), then
+    /// from `baked_base` on the world-space BVHs of baked placements (see
+    /// [`TopLevelAccel::baked`]).
     pub objects: Vec<Option<Arc<ObjectBvh>>>,
     /// Instance transforms by instance id.
     pub instances: Vec<InstanceXf>,
@@ -339,6 +341,14 @@ pub struct TopLevelAccel {
     pub block_entry: Vec<u32>,
     /// Leaf indices from here on name `blocks`, below it `entries`.
     pub block_base: u32,
+    /// The placements traced from world-space BVHs (objects that one
+    /// instance places, see [`crate::toplevel::RebraidParams::bake_single_instances`]),
+    /// as (object, instance): `objects[baked_base + k]` is the BVH of
+    /// `baked[k]`, entered as a directly placed object; hits on it report
+    /// the object and the instance.
+    pub baked: Vec<(u32, u32)>,
+    /// Slot of the first baked placement's BVH in `objects`.
+    pub baked_base: u32,
 }
 
 /// How a committed top level is laid out and traversed, beyond the build.
@@ -763,6 +773,7 @@ impl TopLevelAccel {
             }
             _ => Default::default(),
         };
+        let baked_base = objects.len() as u32;
         Self {
             tree,
             refs,
@@ -776,6 +787,34 @@ impl TopLevelAccel {
             blocks,
             block_entry,
             block_base,
+            baked: Vec::new(),
+            baked_base,
+        }
+    }
+
+    /// Name the last `baked.len()` slots of `objects` as the world-space
+    /// BVHs of these placements, (object, instance) each: hits on them
+    /// report that object and instance. Fails when there are fewer slots.
+    pub fn with_baked(mut self, baked: Vec<(u32, u32)>) -> Result<Self, crate::Error> {
+        let base = self.objects.len().checked_sub(baked.len()).ok_or_else(|| {
+            crate::Error::InvalidParameter(format!(
+                "{} baked placements but {} object slots",
+                baked.len(),
+                self.objects.len()
+            ))
+        })?;
+        self.baked_base = base as u32;
+        self.baked = baked;
+        Ok(self)
+    }
+
+    /// The (object, instance) an object slot places: a baked placement's,
+    /// or the slot's own object placed directly.
+    #[inline]
+    pub fn placement_of_slot(&self, slot: u32) -> (u32, u32) {
+        match slot.checked_sub(self.baked_base) {
+            Some(k) => self.baked[k as usize],
+            None => (slot, INVALID_ID),
         }
     }
 
@@ -847,6 +886,10 @@ impl TopLevelAccel {
             normal,
         };
         if e.instance == INVALID_ID {
+            // A world-space normal (a baked placement's too: the geometric
+            // normal of transformed vertices is the transformed normal,
+            // mirrored with the winding).
+            (hit.object_id, hit.instance_id) = self.placement_of_slot(e.object);
             hit.normal = hit.normal.normalize_or_zero();
             return hit;
         }
@@ -945,14 +988,17 @@ impl TopLevelAccel {
     /// How often each primitive of each placement is reachable by traversal:
     /// walks every entry ref (each the leaf of one slot of the wide top
     /// level, which [`TopLevelAccel::validate`] checks) into its object
-    /// subtree. Keys are (object, instance).
+    /// subtree. Keys are (object, instance), also for baked placements.
     pub fn reachable_counts(&self) -> std::collections::HashMap<(u32, u32), Vec<u32>> {
         let mut counts: std::collections::HashMap<(u32, u32), Vec<u32>> = Default::default();
         for r in &self.entry_refs {
             let Some(obj) = self.object(r) else { continue };
-            let c = counts
-                .entry((r.object, r.instance))
-                .or_insert_with(|| vec![0; obj.mesh.len()]);
+            let key = if r.instance == INVALID_ID {
+                self.placement_of_slot(r.object)
+            } else {
+                (r.object, r.instance)
+            };
+            let c = counts.entry(key).or_insert_with(|| vec![0; obj.mesh.len()]);
             let nodes = obj.nodes();
             let mut stack = vec![r.node as usize];
             while let Some(i) = stack.pop() {
@@ -988,6 +1034,18 @@ impl TopLevelAccel {
         };
         if let Some(i) = boxes.iter().position(|b| b.is_empty()) {
             return Err(format!("ref {i} has no object"));
+        }
+        if self.baked_base as usize + self.baked.len() != self.objects.len() {
+            return Err("baked placements do not name the last object slots".into());
+        }
+        if let Some(i) = self
+            .refs
+            .iter()
+            .position(|r| r.object >= self.baked_base && r.instance != INVALID_ID)
+        {
+            return Err(format!(
+                "ref {i} enters a baked placement through an instance"
+            ));
         }
         tree.validate(&boxes)?;
         if self.block_entry.len() != self.blocks.len() {

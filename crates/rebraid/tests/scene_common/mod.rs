@@ -639,6 +639,46 @@ pub fn random_model(rng: &mut impl Rng, g: &Gen) -> Model {
     m
 }
 
+/// A model whose prototypes are mostly placed by exactly one instance
+/// (what a glTF scene's nodes give), so that commits bake them (see
+/// `RebraidParams::bake_single_instances`), among placed objects they
+/// overlap, one prototype placed twice and one placed object also placed by
+/// an instance (neither baked). Returns the model and the instances a
+/// commit bakes.
+pub fn single_use_model(seed: u64) -> (Model, Vec<u32>) {
+    let mut rng = rng(seed);
+    let g = Gen {
+        clustered: 4,
+        scattered: 1,
+        grids: 1,
+        tris: 120,
+        prototypes: 0,
+        instances: 0,
+        mirror: true,
+    };
+    let mut m = random_model(&mut rng, &g);
+    let placed = m.objects.len() as u32;
+    let mut inst = 0u32;
+    let mut singles = Vec::new();
+    for k in 0..6 {
+        let next = placed + k;
+        let mesh = soup(&mut rng, 120, Vec3::splat(-2.0), Vec3::splat(2.0), 0.8);
+        m.objects.insert(next, (mesh, false));
+        // The last prototype is placed twice.
+        for _ in 0..if k == 5 { 2 } else { 1 } {
+            let xf = random_transform(&mut rng, SCENE_LO, SCENE_HI, true);
+            m.instances.insert(inst, (next, xf));
+            if k < 5 {
+                singles.push(inst);
+            }
+            inst += 1;
+        }
+    }
+    let xf = random_transform(&mut rng, SCENE_LO, SCENE_HI, true);
+    m.instances.insert(inst, (placed - 1, xf));
+    (m, singles)
+}
+
 /// An OBJ scene as a model: one placed object per `o`.
 pub fn load_obj_objects(path: &std::path::Path) -> Model {
     let (models, _) = tobj::load_obj(
