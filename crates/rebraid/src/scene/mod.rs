@@ -623,22 +623,18 @@ impl Scene {
                 .map(|&(i, bake)| {
                     let o = self.objects[i].as_ref().expect("listed above");
                     let baked = bake.and_then(|inst| {
-                        let xf = self.instances[inst as usize]
+                        let xf = &self.instances[inst as usize]
                             .as_ref()
                             .expect("bake targets are live")
                             .xf
                             .object_to_world;
-                        let positions = o.mesh.positions.iter().map(|&p| xf.transform_point3(p));
-                        let world = TriangleMesh {
-                            positions: positions.collect(),
-                            indices: o.mesh.indices.clone(),
-                        };
-                        // Not finite (a huge scale): the instance stays one.
-                        world.validate().ok()?;
-                        Some((inst, MeshBvh::build(&world, params).map(ObjectBvh::new)))
+                        // A failure (vertices moved to infinity by a huge
+                        // scale): the instance stays one.
+                        let bvh = MeshBvh::build_transformed(&o.mesh, xf, params).ok()?;
+                        Some((inst, ObjectBvh::new(bvh)))
                     });
                     match baked {
-                        Some((inst, r)) => (i, bake, Some(inst), r),
+                        Some((inst, bvh)) => (i, bake, Some(inst), Ok(bvh)),
                         None => {
                             let r = MeshBvh::build(&o.mesh, params).map(ObjectBvh::new);
                             (i, bake, None, r)
