@@ -328,13 +328,13 @@ pub struct TopLevelAccel {
     /// The traversal kernel (the scene's choice, by default [`Kernel::best`]).
     pub kernel: Kernel,
     /// The refs the leaves of `wide` index: `refs`, unless entry nodes were
-    /// pulled into the top level (see [`pull_into_top_level`]), which
+    /// pulled into the top level (see `pull_into_top_level` in this module), which
     /// replaces some refs by their children.
     pub entry_refs: Vec<TopRef>,
     /// One [`RefEntry`] per entry ref, made with the accel.
     pub entries: Vec<RefEntry>,
     /// Copies of the triangle blocks of object leaves that top-level leaves
-    /// enter directly (see [`inline_leaf_blocks`]): a wide leaf whose first
+    /// enter directly (see `inline_leaf_blocks` in this module): a wide leaf whose first
     /// index is at least `block_base` names `blocks[first - block_base..]`.
     pub blocks: Vec<Triangle4>,
     /// The entry each block of `blocks` was copied for.
@@ -729,9 +729,9 @@ impl TopLevelAccel {
     ///
     /// `layout` says how: its `pull_entry_nodes` fills the collapsed top
     /// level's empty slots from the object nodes its refs enter
-    /// ([`pull_into_top_level`]), its `inline_leaf_blocks` copies the blocks
+    /// (`pull_into_top_level`), its `inline_leaf_blocks` copies the blocks
     /// of object leaves entered directly into the top level
-    /// ([`inline_leaf_blocks`]).
+    /// (`inline_leaf_blocks`, both in this module).
     pub fn new(
         tree: Bvh,
         refs: Vec<TopRef>,
