@@ -772,31 +772,28 @@ impl Scene {
         );
         let mut refs = std::mem::take(&mut self.top_initial);
         refs.clear();
+        // The root of the BVH in object slot `slot`, placed as it is.
+        let direct_root = |bvh: &ObjectBvh, slot: usize| BuildRef {
+            bounds: bvh.mesh.bvh.bounds(),
+            object: slot as u32,
+            node: 0,
+            instance: INVALID_ID,
+            prims: bvh.mesh.len() as u32,
+            cost: bvh.subtree_cost[0],
+        };
         for (id, o) in self.objects.iter().enumerate() {
             if let (Some(o), Some(bvh)) = (o, &objects[id])
                 && o.placed
             {
-                refs.push(BuildRef {
-                    bounds: bvh.mesh.bvh.bounds(),
-                    object: id as u32,
-                    node: 0,
-                    instance: INVALID_ID,
-                    prims: bvh.mesh.len() as u32,
-                    cost: bvh.subtree_cost[0],
-                });
+                refs.push(direct_root(bvh, id));
             }
         }
         for (k, &(_, instance)) in baked.iter().enumerate() {
             let slot = baked_base + k;
-            let bvh = objects[slot].as_ref().expect("pushed above");
-            refs.push(BuildRef {
-                bounds: bvh.mesh.bvh.bounds(),
-                object: slot as u32,
-                node: 0,
-                instance: INVALID_ID,
-                prims: bvh.mesh.len() as u32,
-                cost: bvh.subtree_cost[0],
-            });
+            refs.push(direct_root(
+                objects[slot].as_ref().expect("pushed above"),
+                slot,
+            ));
             debug_assert!(self.instances[instance as usize].is_some());
         }
         for (id, inst) in self.instances.iter().enumerate() {
