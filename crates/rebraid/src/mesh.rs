@@ -89,18 +89,7 @@ impl TriangleMesh {
     /// [`TriangleMesh::prim_boxes`] in the aligned form
     /// [`crate::bvh::build_bvh_aligned`] takes (the same values).
     pub fn prim_build_boxes(&self) -> (Vec<BinBox>, Vec<Vec3A>) {
-        (0..self.len())
-            .into_par_iter()
-            .with_min_len(4096)
-            .map(|i| {
-                let [a, b, c] = self.triangle(i).map(Vec3A::from);
-                let b = BinBox {
-                    min: a.min(b).min(c),
-                    max: a.max(b).max(c),
-                };
-                (b, b.center())
-            })
-            .unzip()
+        triangle_build_boxes(self.len(), |i| self.triangle(i))
     }
 
     /// One box and one centroid per triangle (box centres, as Embree bins by):
@@ -112,6 +101,27 @@ impl TriangleMesh {
             centroids.into_iter().map(Vec3::from).collect(),
         )
     }
+}
+
+/// Box and centroid (the box centre) of each of `n` triangles, in the
+/// aligned form [`crate::bvh::build_bvh_aligned`] takes.
+#[inline]
+fn triangle_build_boxes(
+    n: usize,
+    triangle: impl Fn(usize) -> [Vec3; 3] + Sync,
+) -> (Vec<BinBox>, Vec<Vec3A>) {
+    (0..n)
+        .into_par_iter()
+        .with_min_len(4096)
+        .map(|i| {
+            let [a, b, c] = triangle(i).map(Vec3A::from);
+            let b = BinBox {
+                min: a.min(b).min(c),
+                max: a.max(b).max(c),
+            };
+            (b, b.center())
+        })
+        .unzip()
 }
 
 /// A BVH over one mesh with the triangles stored in leaf order, as the
@@ -139,8 +149,8 @@ impl MeshBvh {
     /// triangles of the moved mesh, whose index array is the mesh's own (not
     /// copied). Each vertex is transformed once (transforming the three of
     /// every triangle where they are read made the engine's re-braided
-    /// builds 6% slower, 16 alternations). A transform that takes a vertex to infinity is an
-    /// [`Error::NonFiniteVertex`].
+    /// builds 6% slower, 16 alternations). A transform that takes a vertex
+    /// to infinity is an [`Error::NonFiniteVertex`].
     pub fn build_transformed(
         mesh: &TriangleMesh,
         xf: &glam::Affine3A,
@@ -160,18 +170,7 @@ impl MeshBvh {
             });
         }
         let triangle = |i: usize| mesh.indices[i].map(|k| moved[k as usize]);
-        let (boxes, centroids): (Vec<BinBox>, Vec<Vec3A>) = (0..mesh.len())
-            .into_par_iter()
-            .with_min_len(4096)
-            .map(|i| {
-                let [a, b, c] = triangle(i).map(Vec3A::from);
-                let b = BinBox {
-                    min: a.min(b).min(c),
-                    max: a.max(b).max(c),
-                };
-                (b, b.center())
-            })
-            .unzip();
+        let (boxes, centroids) = triangle_build_boxes(mesh.len(), triangle);
         Self::build_over(&boxes, &centroids, triangle, params)
     }
 

@@ -681,7 +681,7 @@ fn baked_placements_answer_right() {
                     .count();
                 assert!(baked_hits > 0, "{what}: no ray hit a baked placement");
                 // A baked slot entered through an instance fails validation.
-                if let Some(i) = t.refs.iter().position(|r| r.object >= t.baked_base) {
+                if let Some(i) = t.refs.iter().position(|r| r.object >= t.baked_base()) {
                     let mut bad = t.clone();
                     bad.refs[i].instance = 0;
                     assert!(bad.validate().is_err(), "{what}");

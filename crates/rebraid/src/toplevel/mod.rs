@@ -316,8 +316,8 @@ pub struct TopLevelAccel {
     pub tree: Bvh,
     pub refs: Vec<TopRef>,
     /// Object BVHs by object id (`None` for removed or empty objects), then
-    /// from `baked_base` on the world-space BVHs of baked placements (see
-    /// [`TopLevelAccel::baked`]).
+    /// in the last `baked.len()` slots the world-space BVHs of baked
+    /// placements (see [`TopLevelAccel::baked`]).
     pub objects: Vec<Option<Arc<ObjectBvh>>>,
     /// Instance transforms by instance id.
     pub instances: Vec<InstanceXf>,
@@ -343,12 +343,10 @@ pub struct TopLevelAccel {
     pub block_base: u32,
     /// The placements traced from world-space BVHs (objects that one
     /// instance places, see [`crate::toplevel::RebraidParams::bake_single_instances`]),
-    /// as (object, instance): `objects[baked_base + k]` is the BVH of
+    /// as (object, instance): `objects[baked_base() + k]` is the BVH of
     /// `baked[k]`, entered as a directly placed object; hits on it report
     /// the object and the instance.
     pub baked: Vec<(u32, u32)>,
-    /// Slot of the first baked placement's BVH in `objects`.
-    pub baked_base: u32,
 }
 
 /// How a committed top level is laid out and traversed, beyond the build.
@@ -773,7 +771,6 @@ impl TopLevelAccel {
             }
             _ => Default::default(),
         };
-        let baked_base = objects.len() as u32;
         Self {
             tree,
             refs,
@@ -788,7 +785,6 @@ impl TopLevelAccel {
             block_entry,
             block_base,
             baked: Vec::new(),
-            baked_base,
         }
     }
 
@@ -796,23 +792,28 @@ impl TopLevelAccel {
     /// BVHs of these placements, (object, instance) each: hits on them
     /// report that object and instance. Fails when there are fewer slots.
     pub fn with_baked(mut self, baked: Vec<(u32, u32)>) -> Result<Self, crate::Error> {
-        let base = self.objects.len().checked_sub(baked.len()).ok_or_else(|| {
-            crate::Error::InvalidParameter(format!(
+        if baked.len() > self.objects.len() {
+            return Err(crate::Error::InvalidParameter(format!(
                 "{} baked placements but {} object slots",
                 baked.len(),
                 self.objects.len()
-            ))
-        })?;
-        self.baked_base = base as u32;
+            )));
+        }
         self.baked = baked;
         Ok(self)
+    }
+
+    /// Slot of the first baked placement's BVH in `objects`.
+    #[inline]
+    pub fn baked_base(&self) -> u32 {
+        (self.objects.len() - self.baked.len()) as u32
     }
 
     /// The (object, instance) an object slot places: a baked placement's,
     /// or the slot's own object placed directly.
     #[inline]
     pub fn placement_of_slot(&self, slot: u32) -> (u32, u32) {
-        match slot.checked_sub(self.baked_base) {
+        match slot.checked_sub(self.baked_base()) {
             Some(k) => self.baked[k as usize],
             None => (slot, INVALID_ID),
         }
@@ -1035,13 +1036,13 @@ impl TopLevelAccel {
         if let Some(i) = boxes.iter().position(|b| b.is_empty()) {
             return Err(format!("ref {i} has no object"));
         }
-        if self.baked_base as usize + self.baked.len() != self.objects.len() {
-            return Err("baked placements do not name the last object slots".into());
+        if self.baked.len() > self.objects.len() {
+            return Err("more baked placements than object slots".into());
         }
         if let Some(i) = self
             .refs
             .iter()
-            .position(|r| r.object >= self.baked_base && r.instance != INVALID_ID)
+            .position(|r| r.object >= self.baked_base() && r.instance != INVALID_ID)
         {
             return Err(format!(
                 "ref {i} enters a baked placement through an instance"
