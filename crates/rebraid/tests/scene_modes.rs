@@ -407,3 +407,31 @@ fn counted_queries_agree_with_the_plain_ones() {
         );
     }
 }
+
+/// A top-level leaf whose object leaf's blocks were copied into the top
+/// level (`RebraidParams::inline_leaf_blocks`) is one leaf visit, as in a
+/// flat BVH: no entry into the object is made, so none is counted.
+#[test]
+fn a_copied_object_leaf_counts_as_one_leaf() {
+    use rebraid::bvh::TraversalCounters;
+    let tri = |x: f32| {
+        TriangleMesh::from_triangles(&[[
+            Vec3::new(x, 0.0, 0.0),
+            Vec3::new(x + 1.0, 0.0, 0.0),
+            Vec3::new(x, 1.0, 0.0),
+        ]])
+        .unwrap()
+    };
+    let mut scene = Scene::with_params(params(AccelMode::Rebraided));
+    scene.add_object(tri(0.0)).unwrap();
+    scene.add_object(tri(10.0)).unwrap();
+    scene.commit().unwrap();
+    let ray = Ray::new(Vec3::new(0.25, 0.25, 1.0), Vec3::NEG_Z, 0.0, f32::INFINITY).unwrap();
+    let mut counted = TraversalCounters::default();
+    let hit = scene
+        .intersect_counted(&ray, &mut counted)
+        .expect("hits the first");
+    assert_eq!(hit.object_id, 0);
+    // The root (two leaf slots) and the one leaf the ray enters.
+    assert_eq!((counted.inner_visited, counted.leaves_visited), (1, 1));
+}

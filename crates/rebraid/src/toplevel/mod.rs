@@ -653,8 +653,8 @@ impl<const ANY: bool> WideQuery for RayWalk<'_, ANY> {
             |first, count, t_max| {
                 if first >= a.block_base {
                     // An object leaf's triangle blocks, copied into the top
-                    // level (see `inline_leaf_blocks`): tested here.
-                    inner.leaves_visited += 1;
+                    // level (see `inline_leaf_blocks`): tested here, and
+                    // counted once, as the top-level leaf it is.
                     let wray = wray.get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
                     let mut hit = None;
                     let stop = intersect_blocks::<ANY>(
