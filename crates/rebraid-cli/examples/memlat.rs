@@ -1,5 +1,6 @@
 //! Memory latency of this machine: a dependent chain of loads through a
-//! random cycle over a buffer that fits the L2 cache (2 MiB) and over one
+//! random cycle over buffers from one that fits the L2 cache (2 MiB) through
+//! the sizes of the shared scenes' BVHs (8-32 MiB, the L3's range) to one
 //! far larger than the L3 (256 MiB). Incoherent rays are chains of such
 //! loads, so figures measured on different days compare only when these
 //! agree (see docs/performance.md, session 6).
@@ -31,7 +32,13 @@ fn chase_ns(bytes: usize, steps: usize) -> f64 {
 }
 
 fn main() {
-    for (label, bytes) in [("2 MiB", 2usize << 20), ("256 MiB", 256usize << 20)] {
+    for (label, bytes) in [
+        ("2 MiB", 2usize << 20),
+        ("8 MiB", 8 << 20),
+        ("16 MiB", 16 << 20),
+        ("32 MiB", 32 << 20),
+        ("256 MiB", 256 << 20),
+    ] {
         let runs: Vec<f64> = (0..3).map(|_| chase_ns(bytes, 5_000_000)).collect();
         println!("{label:>8}: {runs:.1?} ns per dependent load");
     }

@@ -6,11 +6,12 @@
 //!
 //! ```sh
 //! cargo run --release -p rebraid-cli --example visits -- SCENE... [--width W --height H]
+//!     [--budget-per-prim X]
 //! ```
 
 use anyhow::Context;
 use rebraid::bvh::TraversalCounters;
-use rebraid::{AccelMode, Scene, SceneParams};
+use rebraid::{AccelMode, RefBudget, Scene, SceneParams};
 use rebraid_cli::camera::{Camera, UpAxis};
 use rebraid_cli::loaders::{LoadOptions, Split};
 use rebraid_cli::raysets::RaySets;
@@ -19,11 +20,15 @@ use rebraid_cli::scene_input::SceneInput;
 fn main() -> anyhow::Result<()> {
     let mut scenes = Vec::new();
     let (mut width, mut height) = (480u32, 270u32);
+    let mut budget_per_prim: Option<f32> = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
             "--width" => width = args.next().context("--width N")?.parse()?,
             "--height" => height = args.next().context("--height N")?.parse()?,
+            "--budget-per-prim" => {
+                budget_per_prim = Some(args.next().context("--budget-per-prim X")?.parse()?)
+            }
             _ => scenes.push(a),
         }
     }
@@ -43,13 +48,16 @@ fn main() -> anyhow::Result<()> {
         let camera = Camera::fit(&bounds, up);
         let mut built = Vec::new();
         for mode in [AccelMode::Flat, AccelMode::TwoLevel, AccelMode::Rebraided] {
-            let mut scene = Scene::from_desc(
-                &desc,
-                SceneParams {
-                    mode,
-                    ..Default::default()
-                },
-            )?;
+            let mut params = SceneParams {
+                mode,
+                ..Default::default()
+            };
+            if let (Some(x), RefBudget::Scaled { per_primitive, .. }) =
+                (budget_per_prim, &mut params.rebraid.budget)
+            {
+                *per_primitive = x;
+            }
+            let mut scene = Scene::from_desc(&desc, params)?;
             scene.commit()?;
             built.push((mode, scene));
         }
