@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 
-use crate::bench::{BenchRow, EmbreeIsa, RaySetResult, median, read_rays};
+use crate::bench::{BenchRow, Best, EmbreeIsa, RaySetResult, median, read_rays};
 use crate::embree::{EmbreeMode, EmbreeScene};
 use crate::loaders::LoadOptions;
 use crate::scene_input::SceneInput;
@@ -73,6 +73,14 @@ pub fn run_worker(
                 }
             }
         }
+        let best = Best::of(
+            &build_ms,
+            [
+                (sets.primary.len(), &times[0]),
+                (sets.shadow.len(), &times[1]),
+                (sets.diffuse.len(), &times[2]),
+            ],
+        );
         let total = median(build_ms);
         let tris = desc.world_triangles();
         let set = |k: usize, n: usize| RaySetResult {
@@ -99,6 +107,7 @@ pub fn run_worker(
             shadow: set(1, sets.shadow.len()),
             diffuse: set(2, sets.diffuse.len()),
             camera: String::new(),
+            best,
         })
     })
 }
