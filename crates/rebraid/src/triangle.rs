@@ -32,21 +32,25 @@ impl WatertightRay {
     /// every test then fails.
     #[inline]
     pub fn new(origin: Vec3, dir: Vec3) -> Self {
+        // Branch-free: the axes depend on the direction, so on incoherent
+        // rays the branches of a plain `if` chain (and of indexing a `Vec3`
+        // by them) mispredict. Callgrind's branch model, samurai monastery
+        // diffuse rays, flat mode: 9.6 -> 8.7 mispredicted branches per
+        // ray, with this and `Ray::is_valid` without short-circuits.
         let a = dir.abs();
-        let kz = if a.x >= a.y && a.x >= a.z {
-            0
-        } else if a.y >= a.z {
-            1
-        } else {
-            2
-        };
-        let mut kx = (kz + 1) % 3;
-        let mut ky = (kx + 1) % 3;
-        // Swap to preserve the triangle's winding when the ray points down kz.
-        if dir[kz] < 0.0 {
-            std::mem::swap(&mut kx, &mut ky);
-        }
-        let sz = 1.0 / dir[kz];
+        let x_max = (a.x >= a.y) & (a.x >= a.z);
+        let y_max = !x_max & (a.y >= a.z);
+        // kz = 0 when x is the largest, else 1 when y is, else 2.
+        const KZ: [usize; 4] = [2, 1, 0, 0];
+        let kz = KZ[(x_max as usize) << 1 | y_max as usize];
+        let d = [dir.x, dir.y, dir.z, 0.0];
+        let dz = d[kz & 3];
+        // (kz + 1) % 3 and (kz + 2) % 3, swapped to preserve the triangle's
+        // winding when the ray points down kz.
+        const NEXT: [usize; 4] = [1, 2, 0, 1];
+        let (k1, k2) = (NEXT[kz & 3], NEXT[NEXT[kz & 3] & 3]);
+        let (kx, ky) = if dz < 0.0 { (k2, k1) } else { (k1, k2) };
+        let sz = 1.0 / dz;
         Self {
             origin,
             kx,
@@ -56,8 +60,8 @@ impl WatertightRay {
             // to watertightness (every triangle of the ray sees the same
             // constants), and three divisions were a measurable part of a
             // coherent ray's cost.
-            sx: dir[kx] * sz,
-            sy: dir[ky] * sz,
+            sx: d[kx & 3] * sz,
+            sy: d[ky & 3] * sz,
             sz,
         }
     }
@@ -135,6 +139,43 @@ pub fn is_degenerate(v0: Vec3, v1: Vec3, v2: Vec3) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The branch-free axis choice of [`WatertightRay::new`] is the
+    /// reference's `if` chain (ties, zeros, signs and NaN included).
+    #[test]
+    fn axis_choice_matches_the_if_chain() {
+        let vals = [0.0, -0.0, 1.0, -1.0, 2.0, -3.0, f32::NAN, 1e-30, -1e30];
+        for &x in &vals {
+            for &y in &vals {
+                for &z in &vals {
+                    let dir = Vec3::new(x, y, z);
+                    let a = dir.abs();
+                    let kz = if a.x >= a.y && a.x >= a.z {
+                        0
+                    } else if a.y >= a.z {
+                        1
+                    } else {
+                        2
+                    };
+                    let mut kx = (kz + 1) % 3;
+                    let mut ky = (kx + 1) % 3;
+                    if dir[kz] < 0.0 {
+                        std::mem::swap(&mut kx, &mut ky);
+                    }
+                    let r = WatertightRay::new(Vec3::ONE, dir);
+                    assert_eq!((r.kx, r.ky, r.kz), (kx, ky, kz), "{dir:?}");
+                    let sz = 1.0 / dir[kz];
+                    let same =
+                        |a: f32, b: f32| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan());
+                    assert!(same(r.sz, sz), "{dir:?}");
+                    assert!(
+                        same(r.sx, dir[kx] * sz) && same(r.sy, dir[ky] * sz),
+                        "{dir:?}"
+                    );
+                }
+            }
+        }
+    }
 
     fn tri() -> [Vec3; 3] {
         [
