@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# Deterministic per-ray cost of our flat and re-braided modes against Embree's (AVX2) flat and
+# two-level modes: instructions, mispredicted branches and cache misses per ray, from callgrind.
+#
+#   tools/callgrind-compare.sh SCENE SET [more `rebraid bench` options]
+#   e.g. tools/callgrind-compare.sh ../shared/scenes/samurai_monastery.obj diffuse
+#
+# Why: on a shared machine, wall-clock A/B runs of the same binary stray from 1.0 by several
+# percent (docs/performance.md, session 9), while these counts are exact. Only the tracing is
+# counted: ours inside `bench::trace_sets` (ray and hit arrays included), Embree's inside
+# `rtcIntersect1`/`rtcOccluded1`. The cache model is this machine's as the chained-load
+# measurement sees it (`examples/memlat.rs`): 32 KiB L1D and a 1 MiB last level (the private L2;
+# the shared L3 does not help). Valgrind cannot run AVX-512, so Embree is capped at AVX2 (as our
+# kernels are). Needs `valgrind` and a build with `--features embree`. Default image: 240x135.
+set -euo pipefail
+here=$(cd "$(dirname "$0")" && pwd)
+bin=${REBRAID_BIN:-$here/../target/release/rebraid}
+scene=$1 set=$2
+shift 2
+d=$(mktemp -d)
+trap 'rm -rf "$d"' EXIT
+valgrind --tool=callgrind --trace-children=yes --branch-sim=yes --cache-sim=yes \
+    --I1=32768,8,64 --D1=32768,8,64 --LL=1048576,8,64 --collect-atstart=no \
+    --toggle-collect='rebraid_cli::bench::trace_sets' --toggle-collect='rtcIntersect1' \
+    --toggle-collect='rtcOccluded1' --callgrind-out-file="$d/cg.%p" \
+    "$bin" bench "$scene" --modes flat --sets "$set" --threads 1 --reps 1 --width 240 --height 135 \
+    --embree --embree-isa avx2 --json "$d/flat.json" "$@" >/dev/null 2>&1
+mv "$(ls "$d"/cg.* | head -1)" "$d/flat.cg"
+for f in "$d"/cg.*; do mv "$f" "$d/$(grep -m1 -o -- '--mode embree-[a-z-]*' "$f" | cut -d' ' -f2).cg"; done
+valgrind --tool=callgrind --branch-sim=yes --cache-sim=yes \
+    --I1=32768,8,64 --D1=32768,8,64 --LL=1048576,8,64 --collect-atstart=no \
+    --toggle-collect='rebraid_cli::bench::trace_sets' --callgrind-out-file="$d/rebraided.cg" \
+    "$bin" bench "$scene" --modes rebraided --sets "$set" --threads 1 --reps 1 --width 240 \
+    --height 135 "$@" >/dev/null 2>&1
+python3 - "$d" "$set" "$(basename "$scene")" <<'PY'
+import json, re, sys
+d, ray_set, scene = sys.argv[1:4]
+rays = next(json.loads(l)[ray_set]["rays"] for l in open(f"{d}/flat.json"))
+print(f"{scene} {ray_set}: {rays} rays; per ray:")
+print(f"  {'mode':<20} {'instr':>8} {'mispred':>8} {'L1D miss':>9} {'LL miss':>8}")
+for mode in ["flat", "rebraided", "embree-flat", "embree-two-level"]:
+    txt = open(f"{d}/{mode}.cg").read()
+    ev = re.search(r"^events:\s+(.*)", txt, re.M).group(1).split()
+    tot = dict(zip(ev, map(int, re.search(r"^summary:\s+(.*)", txt, re.M).group(1).split())))
+    per = lambda k: tot.get(k, 0) / rays
+    print(f"  {mode:<20} {per('Ir'):8.1f} {per('Bcm') + per('Bim'):8.2f} "
+          f"{per('D1mr') + per('D1mw'):9.2f} {per('DLmr') + per('DLmw'):8.2f}")
+PY
