@@ -458,7 +458,8 @@ fn traverse<const W: usize, const ANY: bool, B, L>(
                 // Two hits (the most common case after one): go to the
                 // nearer, push the other; equal distances keep slot order, as
                 // the sort below does. Counted with callgrind: the sort's
-                // array traffic was 15 instructions more per such node.
+                // array traffic cost about 8 instructions more per such node
+                // (samurai diffuse, flat: 1,061 -> 1,048 per ray).
                 let j = mask.trailing_zeros() as usize;
                 mask &= mask - 1;
                 let (near, far) = if dist[j] < dist[i] { (j, i) } else { (i, j) };
