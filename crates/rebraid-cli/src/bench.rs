@@ -565,6 +565,16 @@ pub fn write_rays(path: &std::path::Path, sets: &RaySets) -> anyhow::Result<()> 
 mod tests {
     use super::*;
 
+    /// The columns of the ratio table's line for `scene`.
+    fn columns_of<'a>(table: &'a str, scene: &str) -> Vec<&'a str> {
+        table
+            .lines()
+            .find(|l| l.split_whitespace().next() == Some(scene))
+            .unwrap_or_else(|| panic!("no line for {scene} in {table}"))
+            .split_whitespace()
+            .collect()
+    }
+
     #[test]
     fn median_of_odd_and_even() {
         assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
@@ -623,11 +633,7 @@ mod tests {
         );
         assert!(s.contains("rebraided / embree-two-level"), "{s}");
         assert!(!s.contains("embree-flat"), "no flat rows: {s}");
-        let line = s
-            .lines()
-            .find(|l| l.trim_start().starts_with("a "))
-            .unwrap();
-        let cols: Vec<&str> = line.split_whitespace().collect();
+        let cols = columns_of(&s, "a");
         assert_eq!(cols, ["a", "1", "2.00", "0.50", "1.00", "0.50"]);
         assert_eq!(s.lines().count(), 3, "{s}");
         assert!(
@@ -663,11 +669,7 @@ mod tests {
             vec![row("rebraided", 9.0, 20.0), row("embree-flat", 3.0, 40.0)],
         ];
         let s = format_ratios(&cycles, "rebraided", &["embree-flat"], CycleStat::Median);
-        let line = s
-            .lines()
-            .find(|l| l.trim_start().starts_with("a "))
-            .unwrap();
-        let cols: Vec<&str> = line.split_whitespace().collect();
+        let cols = columns_of(&s, "a");
         assert_eq!(cols[..3], ["a", "1", "3.00"]);
         assert_eq!(cols[5], "2.00", "build: median of 2, 3, 2");
         let rows = median_rows(&cycles);
@@ -720,11 +722,7 @@ mod tests {
             ],
         ];
         let s = format_ratios(&cycles, "rebraided", &["embree-flat"], CycleStat::Best);
-        let line = s
-            .lines()
-            .find(|l| l.trim_start().starts_with("a "))
-            .unwrap();
-        let cols: Vec<&str> = line.split_whitespace().collect();
+        let cols = columns_of(&s, "a");
         assert_eq!(cols[2], "2.00", "{s}");
         assert_eq!(cols[5], "1.50", "{s}");
         // Ray sets without figures on either side: no ratio (NaN).
