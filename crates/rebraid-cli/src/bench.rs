@@ -74,6 +74,19 @@ pub struct Best {
 }
 
 impl Best {
+    /// From a row's repetitions: build times (ms) and the trace times (s)
+    /// of each ray set of `sets` (primary, shadow, diffuse).
+    pub fn of_sets(build_ms: &[f64], sets: &RaySets, times: &[Vec<f64>; 3]) -> Self {
+        Self::of(
+            build_ms,
+            [
+                (sets.primary.len(), &times[0]),
+                (sets.shadow.len(), &times[1]),
+                (sets.diffuse.len(), &times[2]),
+            ],
+        )
+    }
+
     /// From a row's repetitions: build times (ms) and, per ray set, the ray
     /// count and the trace times (s).
     pub fn of(build_ms: &[f64], sets: [(usize, &[f64]); 3]) -> Self {
@@ -296,13 +309,10 @@ pub fn bench_scene(
                     shadow: set(1, sets.shadow.len()),
                     diffuse: set(2, sets.diffuse.len()),
                     camera: camera.to_arg(),
-                    best: Best::of(
+                    best: Best::of_sets(
                         &b.iter().map(|x| x.2).collect::<Vec<_>>(),
-                        [
-                            (sets.primary.len(), &times[i][0]),
-                            (sets.shadow.len(), &times[i][1]),
-                            (sets.diffuse.len(), &times[i][2]),
-                        ],
+                        sets,
+                        &times[i],
                     ),
                 });
             }

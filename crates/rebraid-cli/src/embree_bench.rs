@@ -73,14 +73,7 @@ pub fn run_worker(
                 }
             }
         }
-        let best = Best::of(
-            &build_ms,
-            [
-                (sets.primary.len(), &times[0]),
-                (sets.shadow.len(), &times[1]),
-                (sets.diffuse.len(), &times[2]),
-            ],
-        );
+        let best = Best::of_sets(&build_ms, &sets, &times);
         let total = median(build_ms);
         let tris = desc.world_triangles();
         let set = |k: usize, n: usize| RaySetResult {
