@@ -76,9 +76,14 @@ impl Ray {
     }
 }
 
+/// Rays per task of the batch queries: small enough for two threads to
+/// share a few thousand rays evenly, large enough that a task's set-up (a
+/// kernel dispatch, see [`par_query_runs`]) is paid rarely.
+pub const QUERY_RUN: usize = 256;
+
 /// Answer many rays in parallel on the current rayon pool: `out[i] =
 /// query(&rays[i])`. Every batch API (mesh, scene, the Embree baseline) goes
-/// through this, so they share one chunking policy.
+/// through [`par_query_runs`], so they share one chunking policy.
 ///
 /// Panics when `rays` and `out` differ in length (a caller bug).
 pub fn par_query<T, F>(rays: &[Ray], out: &mut [T], query: F)
@@ -86,12 +91,30 @@ where
     T: Send,
     F: Fn(&Ray) -> T + Sync,
 {
+    par_query_runs(rays, out, |rays, out| {
+        for (o, r) in out.iter_mut().zip(rays) {
+            *o = query(r);
+        }
+    });
+}
+
+/// Answer many rays in parallel on the current rayon pool, a run of up to
+/// [`QUERY_RUN`] consecutive rays per call: `query(rays, out)` answers
+/// `rays[i]` in `out[i]`. For queries whose per-call set-up is worth
+/// sharing across rays. Results do not depend on the thread count as long
+/// as each ray's answer depends only on the ray.
+///
+/// Panics when `rays` and `out` differ in length (a caller bug).
+pub fn par_query_runs<T, F>(rays: &[Ray], out: &mut [T], query: F)
+where
+    T: Send,
+    F: Fn(&[Ray], &mut [T]) + Sync,
+{
     use rayon::prelude::*;
     assert_eq!(rays.len(), out.len(), "one output per ray");
-    out.par_iter_mut()
-        .zip(rays.par_iter())
-        .with_min_len(256)
-        .for_each(|(o, r)| *o = query(r));
+    out.par_chunks_mut(QUERY_RUN)
+        .zip(rays.par_chunks(QUERY_RUN))
+        .for_each(|(o, r)| query(r, o));
 }
 
 /// The closest hit along a ray.

@@ -336,6 +336,7 @@ fn directly_placed_hits_have_no_instance_id() {
 fn invalid_rays_hit_nothing_in_every_mode() {
     let mut rng = rng(5);
     let model = random_model(&mut rng, &Gen::default());
+    let world = model.world();
     let mut scene = model.to_scene(params(AccelMode::Flat));
     let c = (SCENE_LO + SCENE_HI) * 0.5;
     let bad = [
@@ -365,6 +366,23 @@ fn invalid_rays_hit_nothing_in_every_mode() {
         let mut out = vec![Some(Hit::NONE); bad.len()];
         scene.intersect_batch(&bad, &mut out);
         assert!(out.iter().all(|h| h.is_none()));
+        // Mixed into a batch of valid rays that spans several runs (the
+        // batch queries answer runs of rays in one kernel call): every ray
+        // is answered as alone.
+        let mixed: Vec<Ray> = random_rays(&mut rng, &world, 700, SCENE_LO, SCENE_HI)
+            .into_iter()
+            .enumerate()
+            .map(|(i, r)| if i % 7 == 3 { bad[i % bad.len()] } else { r })
+            .collect();
+        let mut hits = vec![Some(Hit::NONE); mixed.len()];
+        scene.intersect_batch(&mixed, &mut hits);
+        let mut occ = vec![true; mixed.len()];
+        scene.occluded_batch(&mixed, &mut occ);
+        for (i, r) in mixed.iter().enumerate() {
+            assert_eq!(hits[i], scene.intersect(r), "{mode:?} ray {i}");
+            assert_eq!(occ[i], scene.occluded(r), "{mode:?} ray {i}");
+        }
+        assert!(hits.iter().filter(|h| h.is_some()).count() * 4 >= mixed.len());
     }
 }
 

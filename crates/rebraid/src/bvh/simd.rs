@@ -993,6 +993,61 @@ pub fn query_subtree<const ANY: bool>(
     best
 }
 
+/// [`query_subtree`] from the root for a run of rays, `out[i]` answering
+/// `rays[i]` through `answer` (`None` for an invalid ray), with one kernel
+/// dispatch for the whole run instead of one per ray. The tree must not be
+/// empty. Panics when the lengths differ.
+pub fn query_many<const ANY: bool, O>(
+    nodes: &[WideNode<8>],
+    blocks: &[Triangle4],
+    kernel: Kernel,
+    rays: &[Ray],
+    out: &mut [O],
+    answer: impl Fn(Option<LeafHit>) -> O,
+) {
+    assert_eq!(rays.len(), out.len(), "one output per ray");
+    struct Many<'a, const ANY: bool, O, A> {
+        nodes: &'a [WideNode<8>],
+        blocks: &'a [Triangle4],
+        rays: &'a [Ray],
+        out: &'a mut [O],
+        answer: A,
+    }
+    impl<const ANY: bool, O, A: Fn(Option<LeafHit>) -> O> WideQuery for Many<'_, ANY, O, A> {
+        #[inline(always)]
+        fn run<F: TesterFactory>(&mut self, factory: &F) {
+            for (o, ray) in self.out.iter_mut().zip(self.rays) {
+                let mut hit = None;
+                if ray.is_valid() {
+                    let tester = factory.make(ray);
+                    let wray = WatertightRay::new(ray.origin, ray.dir);
+                    hit = subtree_with::<8, ANY, _>(
+                        self.nodes,
+                        self.blocks,
+                        &tester,
+                        &wray,
+                        ray.t_min,
+                        0,
+                        ray.t_max,
+                        &mut TraversalCounters::default(),
+                    );
+                }
+                *o = (self.answer)(hit);
+            }
+        }
+    }
+    with_kernel(
+        kernel,
+        &mut Many::<ANY, O, _> {
+            nodes,
+            blocks,
+            rays,
+            out,
+            answer,
+        },
+    );
+}
+
 #[cfg(test)]
 mod tests {
     use rand::{Rng, SeedableRng};

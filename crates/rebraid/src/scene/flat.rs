@@ -7,7 +7,9 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::bvh::triangle4::block_hit_record;
-use crate::bvh::{BuildParams, Kernel, TraversalCounters, WideTriangleBvh, query_subtree};
+use crate::bvh::{
+    BuildParams, Kernel, TraversalCounters, WideTriangleBvh, query_many, query_subtree,
+};
 use crate::{Error, Hit, MeshBvh, Ray, TriangleMesh};
 
 /// Where a triangle of the flat BVH came from.
@@ -108,6 +110,46 @@ impl FlatAccel {
                 let (t, u, v, k) = h;
                 let (prim_id, normal) = block_hit_record(&w.blocks, k);
                 Some(self.map_hit(Hit::on_mesh(t, u, v, prim_id, normal)))
+            }
+        }
+    }
+
+    /// Closest hits of a run of rays on the calling thread, as
+    /// [`FlatAccel::intersect_counted`] answers each, with one kernel
+    /// dispatch for the run. Panics when the lengths differ.
+    pub fn intersect_many(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
+        match &self.wide {
+            Some(w) if !self.bvh.bvh.nodes.is_empty() => {
+                query_many::<false, _>(&w.wide.nodes, &w.blocks, self.kernel, rays, out, |h| {
+                    h.map(|(t, u, v, k)| {
+                        let (prim_id, normal) = block_hit_record(&w.blocks, k);
+                        self.map_hit(Hit::on_mesh(t, u, v, prim_id, normal))
+                    })
+                })
+            }
+            _ => {
+                assert_eq!(rays.len(), out.len(), "one output per ray");
+                for (o, r) in out.iter_mut().zip(rays) {
+                    *o = self.intersect_counted(r, &mut TraversalCounters::default());
+                }
+            }
+        }
+    }
+
+    /// Occlusion of a run of rays on the calling thread (see
+    /// [`FlatAccel::intersect_many`]).
+    pub fn occluded_many(&self, rays: &[Ray], out: &mut [bool]) {
+        match &self.wide {
+            Some(w) if !self.bvh.bvh.nodes.is_empty() => {
+                query_many::<true, _>(&w.wide.nodes, &w.blocks, self.kernel, rays, out, |h| {
+                    h.is_some()
+                })
+            }
+            _ => {
+                assert_eq!(rays.len(), out.len(), "one output per ray");
+                for (o, r) in out.iter_mut().zip(rays) {
+                    *o = self.occluded(r);
+                }
             }
         }
     }

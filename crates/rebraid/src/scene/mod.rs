@@ -892,12 +892,20 @@ impl Scene {
 
     /// Closest hits of many rays, in parallel.
     pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
-        crate::ray::par_query(rays, out, |r| self.intersect(r));
+        crate::ray::par_query_runs(rays, out, |rays, out| match &self.accel {
+            Accel::Empty => out.fill(None),
+            Accel::Flat(f) => f.intersect_many(rays, out),
+            Accel::TopLevel(t) => t.intersect_many(rays, out),
+        });
     }
 
     /// Occlusion of many rays, in parallel.
     pub fn occluded_batch(&self, rays: &[Ray], out: &mut [bool]) {
-        crate::ray::par_query(rays, out, |r| self.occluded(r));
+        crate::ray::par_query_runs(rays, out, |rays, out| match &self.accel {
+            Accel::Empty => out.fill(false),
+            Accel::Flat(f) => f.occluded_many(rays, out),
+            Accel::TopLevel(t) => t.occluded_many(rays, out),
+        });
     }
 
     /// Statistics of the committed structure.
