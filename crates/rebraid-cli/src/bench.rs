@@ -415,6 +415,37 @@ impl EmbreeIsa {
     }
 }
 
+/// Which Embree entry point traces a batch (`rebraid bench --embree-api`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum EmbreeApi {
+    /// One `rtcIntersect1` / `rtcOccluded1` per ray: single-ray
+    /// traversal, as `shared/docs/anchors.md` measured Embree.
+    Single,
+    /// One `rtcIntersect1M` / `rtcOccluded1M` per run of rays (Embree's
+    /// stream API): Embree regroups the rays into packets by direction
+    /// octant and traces coherent ones together.
+    Stream,
+}
+
+impl EmbreeApi {
+    /// Appended to the Embree modes' names after the ISA's suffix
+    /// (`embree-flat-stream`, `embree-flat-avx2-stream`).
+    pub fn mode_suffix(self) -> &'static str {
+        match self {
+            EmbreeApi::Single => "",
+            EmbreeApi::Stream => "-stream",
+        }
+    }
+
+    /// The name `--embree-api` and the worker's `--api` take.
+    pub fn arg(self) -> &'static str {
+        match self {
+            EmbreeApi::Single => "single",
+            EmbreeApi::Stream => "stream",
+        }
+    }
+}
+
 /// Ratio tables of `mode` against each baseline mode: Mrays/s ours over
 /// theirs per ray set, build time theirs over ours. `cycles` holds the rows
 /// of each measurement cycle (see [`median_rows`]). With

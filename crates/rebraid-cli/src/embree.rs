@@ -369,6 +369,11 @@ impl EmbreeScene {
         let mut ctx = IntersectContext::incoherent();
         let mut rh = RayHit::from_ray(r);
         self.top.intersect(&mut ctx, &mut rh);
+        self.hit_of(&rh)
+    }
+
+    /// Our hit record of Embree's answer (`None` for a miss).
+    fn hit_of(&self, rh: &RayHit) -> Option<EmbreeHit> {
         if !rh.hit.is_valid() {
             return None;
         }
@@ -409,16 +414,60 @@ impl EmbreeScene {
         self.top.occluded(&mut ctx, &mut r)
     }
 
-    /// Closest hits of many rays, in parallel on the rayon pool (one
-    /// `rtcIntersect1` per ray).
-    pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<EmbreeHit>]) {
-        rebraid::ray::par_query(rays, out, |r| self.intersect(r));
+    /// An Embree ray for a run of a stream: `ray` converted, or an inactive
+    /// ray (`tnear > tfar`, which Embree skips) for a ray that hits nothing.
+    fn stream_ray(ray: &Ray) -> embree3::Ray {
+        Self::embree_ray(ray)
+            .unwrap_or_else(|| embree3::Ray::segment([0.0; 3], [1.0, 0.0, 0.0], 1.0, 0.0))
     }
 
-    /// Occlusion of many rays, in parallel on the rayon pool (one
-    /// `rtcOccluded1` per ray).
+    /// Closest hits of many rays, in parallel on the rayon pool: one
+    /// `rtcIntersect1` per ray, or with `stream` one `rtcIntersect1M` per
+    /// run of rays (Embree's stream API, which pays its API entry once per
+    /// run, as our batch queries pay their kernel dispatch).
+    pub fn intersect_batch_with(&self, rays: &[Ray], out: &mut [Option<EmbreeHit>], stream: bool) {
+        if !stream {
+            return rebraid::ray::par_query(rays, out, |r| self.intersect(r));
+        }
+        rebraid::ray::par_query_runs(rays, out, |rays, out| {
+            let mut ctx = IntersectContext::incoherent();
+            let mut rh: Vec<RayHit> = rays
+                .iter()
+                .map(|r| RayHit::from_ray(Self::stream_ray(r)))
+                .collect();
+            self.top.intersect_stream_aos(&mut ctx, &mut rh);
+            for (o, h) in out.iter_mut().zip(&rh) {
+                *o = self.hit_of(h);
+            }
+        });
+    }
+
+    /// Occlusion of many rays, in parallel on the rayon pool (see
+    /// [`EmbreeScene::intersect_batch_with`]; `rtcOccluded1M` with
+    /// `stream`).
+    pub fn occluded_batch_with(&self, rays: &[Ray], out: &mut [bool], stream: bool) {
+        if !stream {
+            return rebraid::ray::par_query(rays, out, |r| self.occluded(r));
+        }
+        rebraid::ray::par_query_runs(rays, out, |rays, out| {
+            let mut ctx = IntersectContext::incoherent();
+            let mut er: Vec<embree3::Ray> = rays.iter().map(Self::stream_ray).collect();
+            self.top.occluded_stream_aos(&mut ctx, &mut er);
+            // An occluded ray comes back with `tfar = -inf`.
+            for (o, r) in out.iter_mut().zip(&er) {
+                *o = r.tfar == f32::NEG_INFINITY;
+            }
+        });
+    }
+
+    /// Closest hits of many rays, one `rtcIntersect1` per ray.
+    pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<EmbreeHit>]) {
+        self.intersect_batch_with(rays, out, false)
+    }
+
+    /// Occlusion of many rays, one `rtcOccluded1` per ray.
     pub fn occluded_batch(&self, rays: &[Ray], out: &mut [bool]) {
-        rebraid::ray::par_query(rays, out, |r| self.occluded(r));
+        self.occluded_batch_with(rays, out, false)
     }
 
     /// Bytes Embree has allocated on this scene's device and not freed

@@ -7,12 +7,13 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 
-use crate::bench::{BenchRow, Best, EmbreeIsa, RaySetResult, median, read_rays};
+use crate::bench::{BenchRow, Best, EmbreeApi, EmbreeIsa, RaySetResult, median, read_rays};
 use crate::embree::{EmbreeMode, EmbreeScene};
 use crate::loaders::LoadOptions;
 use crate::scene_input::SceneInput;
 
-/// Build and trace in Embree inside a pool of `threads` threads.
+/// Build and trace in Embree inside a pool of `threads` threads, with
+/// kernels up to `max_isa`, each batch through `api`.
 pub fn run_worker(
     input: &SceneInput,
     opts: &LoadOptions,
@@ -20,13 +21,14 @@ pub fn run_worker(
     mode: &str,
     threads: usize,
     reps: usize,
-    max_isa: EmbreeIsa,
+    (max_isa, api): (EmbreeIsa, EmbreeApi),
 ) -> anyhow::Result<BenchRow> {
     let emode = match mode {
         "embree-flat" => EmbreeMode::Flat,
         "embree-two-level" => EmbreeMode::TwoLevel,
         _ => bail!("unknown Embree mode '{mode}'"),
     };
+    let stream = api == EmbreeApi::Stream;
     let (desc, _) = input.load(opts)?;
     let sets = read_rays(rays)?;
     let pool = rayon::ThreadPoolBuilder::new()
@@ -59,12 +61,12 @@ pub fn run_worker(
                 let t = Instant::now();
                 if k == 1 {
                     let mut occ = vec![false; rays.len()];
-                    scene.occluded_batch(rays, &mut occ);
+                    scene.occluded_batch_with(rays, &mut occ, stream);
                     times[k].push(t.elapsed().as_secs_f64());
                     answers[k] = (occ.iter().filter(|&&o| o).count(), 0.0);
                 } else {
                     let mut hits = vec![None; rays.len()];
-                    scene.intersect_batch(rays, &mut hits);
+                    scene.intersect_batch_with(rays, &mut hits, stream);
                     times[k].push(t.elapsed().as_secs_f64());
                     answers[k] = hits
                         .iter()

@@ -9,7 +9,7 @@ use anyhow::{Context, bail};
 use clap::{Args, Parser, Subcommand};
 use rebraid::{AccelMode, RefBudget, Scene, SceneParams};
 use rebraid_cli::animate;
-use rebraid_cli::bench::{self, BenchConfig, BenchRow, CycleStat, EmbreeIsa};
+use rebraid_cli::bench::{self, BenchConfig, BenchRow, CycleStat, EmbreeApi, EmbreeIsa};
 use rebraid_cli::camera::{Camera, UpAxis};
 use rebraid_cli::loaders::{LoadOptions, Split};
 use rebraid_cli::render::{self, RenderSettings};
@@ -255,6 +255,12 @@ struct BenchArgs {
     /// named `embree-flat-avx2` and so on).
     #[arg(long, value_enum, value_delimiter = ',', default_value = "auto")]
     embree_isa: Vec<EmbreeIsa>,
+    /// With `--embree`: Embree's entry point for a batch, comma-separated
+    /// for a pair of Embree rows each (`single`: `rtcIntersect1` per ray;
+    /// `stream`: `rtcIntersect1M` per run of rays, rows named
+    /// `embree-flat-stream` and so on).
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "single")]
+    embree_api: Vec<EmbreeApi>,
     /// Ray sets to trace, comma-separated (the others are generated but
     /// not traced and report 0): for profiling one workload.
     #[arg(long, default_value = "primary,shadow,diffuse")]
@@ -351,6 +357,8 @@ struct EmbreeWorkerArgs {
     reps: usize,
     #[arg(long, value_enum, default_value = "auto")]
     max_isa: EmbreeIsa,
+    #[arg(long, value_enum, default_value = "single")]
+    api: EmbreeApi,
     #[command(flatten)]
     opts: SceneOpts,
 }
@@ -558,11 +566,10 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
     }
     println!();
     print!("{}", bench::format_answers(&rows));
-    let baselines: Vec<String> = a
-        .embree_isa
-        .iter()
-        .flat_map(|isa| {
-            ["embree-two-level", "embree-flat"].map(|m| format!("{m}{}", isa.mode_suffix()))
+    let baselines: Vec<String> = embree_variants(&a)
+        .flat_map(|(isa, api)| {
+            ["embree-two-level", "embree-flat"]
+                .map(|m| format!("{m}{}{}", isa.mode_suffix(), api.mode_suffix()))
         })
         .collect();
     let baselines: Vec<&str> = baselines.iter().map(String::as_str).collect();
@@ -596,6 +603,13 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The Embree variants `bench --embree` times: every ISA with every API.
+fn embree_variants(a: &BenchArgs) -> impl Iterator<Item = (EmbreeIsa, EmbreeApi)> + '_ {
+    a.embree_isa
+        .iter()
+        .flat_map(|&isa| a.embree_api.iter().map(move |&api| (isa, api)))
+}
+
 /// A fresh directory for the ray file the Embree workers read.
 fn tempfile_dir() -> anyhow::Result<PathBuf> {
     let dir = std::env::temp_dir().join(format!("rebraid-bench-{}", std::process::id()));
@@ -621,15 +635,13 @@ fn embree_rows(
     };
     let mut rows = Vec::new();
     for &t in threads {
-        for (&isa, mode) in a
-            .embree_isa
-            .iter()
-            .flat_map(|isa| ["embree-flat", "embree-two-level"].map(|m| (isa, m)))
+        for (isa, api, mode) in embree_variants(a)
+            .flat_map(|(isa, api)| ["embree-flat", "embree-two-level"].map(|m| (isa, api, m)))
         {
+            let name = format!("{mode}{}{}", isa.mode_suffix(), api.mode_suffix());
             eprint!(
-                "\r\x1b[2K{}: {mode}{} ({t} thr) in a worker process{tag}",
+                "\r\x1b[2K{}: {name} ({t} thr) in a worker process{tag}",
                 input.name(),
-                isa.mode_suffix()
             );
             let mut cmd = std::process::Command::new(&exe);
             cmd.args(["embree-worker", &scene_arg, "--mode", mode])
@@ -637,6 +649,7 @@ fn embree_rows(
                 .arg(rays)
                 .args(["--threads", &t.to_string(), "--reps", &reps.to_string()])
                 .args(["--max-isa", isa.arg()])
+                .args(["--api", api.arg()])
                 .args([
                     "--scale",
                     &a.opts.scale.to_string(),
@@ -657,7 +670,7 @@ fn embree_rows(
             let mut row: BenchRow =
                 serde_json::from_slice(&out.stdout).context("reading the Embree worker's row")?;
             row.scene = input.name();
-            row.mode = format!("{mode}{}", isa.mode_suffix());
+            row.mode = name;
             rows.push(row);
         }
     }
@@ -674,7 +687,7 @@ fn run_embree_worker(a: EmbreeWorkerArgs) -> anyhow::Result<()> {
         &a.mode,
         a.threads,
         a.reps,
-        a.max_isa,
+        (a.max_isa, a.api),
     )?;
     println!("{}", serde_json::to_string(&row)?);
     Ok(())

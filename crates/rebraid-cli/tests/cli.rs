@@ -642,6 +642,8 @@ fn embree_rows_agree_with_ours() {
             "--scale",
             "0.02",
             "--embree",
+            "--embree-api",
+            "single,stream",
             "--reps",
             "1",
             "--threads",
@@ -657,9 +659,16 @@ fn embree_rows_agree_with_ours() {
         ],
     );
     assert!(out.contains("embree-flat"), "{out}");
+    assert!(out.contains("rebraided / embree-two-level-stream"), "{out}");
     let rows = read_rows(&json);
-    assert_eq!(rows.len(), 5, "{rows:#?}");
-    for m in MODES.iter().chain(&["embree-flat", "embree-two-level"]) {
+    assert_eq!(rows.len(), 7, "{rows:#?}");
+    let embree = [
+        "embree-flat",
+        "embree-two-level",
+        "embree-flat-stream",
+        "embree-two-level-stream",
+    ];
+    for m in MODES.iter().chain(&embree) {
         check_row_keys(row(&rows, m, 1), 64 * 36);
     }
     check_agreement(&rows, row(&rows, "flat", 1), 1e-4);

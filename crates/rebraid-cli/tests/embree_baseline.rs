@@ -268,6 +268,14 @@ fn compare(
     embree.intersect_batch(rays, &mut ehits);
     let mut eocc = vec![false; rays.len()];
     embree.occluded_batch(rays, &mut eocc);
+    // The stream API (`rtcIntersect1M`, packets of coherent rays) answers
+    // as the single-ray one does.
+    let mut shits = vec![None; rays.len()];
+    embree.intersect_batch_with(rays, &mut shits, true);
+    let mut socc = vec![true; rays.len()];
+    embree.occluded_batch_with(rays, &mut socc, true);
+    assert_eq!(shits, ehits, "{what}: stream != single");
+    assert_eq!(socc, eocc, "{what}: occluded stream != single");
     let mut tally = Tally {
         rays: rays.len(),
         ..Tally::default()
