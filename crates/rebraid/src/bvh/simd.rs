@@ -197,7 +197,7 @@ fn plane_order(inv_dir: Vec3) -> ([usize; 3], [usize; 3]) {
 }
 
 #[cfg(target_arch = "x86_64")]
-mod x86 {
+pub(crate) mod x86 {
     use core::arch::x86_64::*;
 
     use super::{BoxTester, FmaSlab, ROBUST_FAR, plane_order};
@@ -284,7 +284,7 @@ mod x86 {
 
     /// Eight lanes in one step, `W = 8`.
     #[derive(Clone, Copy)]
-    pub(super) struct Avx2Tester {
+    pub(crate) struct Avx2Tester {
         inv_dir: [__m256; 3],
         /// `origin * inv_dir` plus (near) or minus (far) a bound on its
         /// rounding error, per axis: the one-FMA distances
@@ -314,7 +314,7 @@ mod x86 {
         /// [`SseTester::new`], also for why this is not a target-feature
         /// function).
         #[inline(always)]
-        pub(super) unsafe fn new(origin: Vec3, dir: Vec3, t_min: f32) -> Self {
+        pub(crate) unsafe fn new(origin: Vec3, dir: Vec3, t_min: f32) -> Self {
             let slab = FmaSlab::new(origin, dir);
             let splat = |v: Vec3| -> [__m256; 3] {
                 [
@@ -899,18 +899,39 @@ impl TesterFactory for SseFactory {
     }
 }
 
+/// The AVX2 kernel's tester factory. Only this module makes one (the
+/// private field), and only inside AVX2 target-feature functions
+/// ([`run_avx2`], [`with_avx2`]) on CPUs that have AVX2 and FMA.
 #[cfg(target_arch = "x86_64")]
-struct Avx2Factory;
+pub(crate) struct Avx2Factory(());
 
 #[cfg(target_arch = "x86_64")]
 impl TesterFactory for Avx2Factory {
     type Tester = x86::Avx2Tester;
     #[inline(always)]
     fn make(&self, ray: &Ray) -> x86::Avx2Tester {
-        // SAFETY: an `Avx2Factory` exists only inside `run_avx2`, which runs
-        // only on CPUs with AVX2 and FMA (checked by `with_kernel`).
+        // SAFETY: an `Avx2Factory` exists only inside `run_avx2` and
+        // `with_avx2`, which run only on CPUs with AVX2 and FMA (checked by
+        // `with_kernel` and `with_avx2`).
         unsafe { x86::Avx2Tester::new(ray.origin, ray.dir, ray.t_min) }
     }
+}
+
+/// Run `f` inside the AVX2 kernel's target-feature context with its
+/// tester factory (for code that needs more of AVX2 than a box tester,
+/// such as packet traversal); `None` when the CPU lacks AVX2 or FMA.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+pub(crate) fn with_avx2<R>(f: impl FnOnce(&Avx2Factory) -> R) -> Option<R> {
+    #[target_feature(enable = "avx2,fma")]
+    fn run<R>(f: impl FnOnce(&Avx2Factory) -> R) -> R {
+        f(&Avx2Factory(()))
+    }
+    if !Kernel::Avx2.is_available() {
+        return None;
+    }
+    // SAFETY: the CPU has AVX2 and FMA (checked just above).
+    Some(unsafe { run(f) })
 }
 
 /// Run `query` with `kernel`'s tester factory, inside that kernel's
@@ -935,7 +956,7 @@ pub fn with_kernel<Q: WideQuery>(kernel: Kernel, query: &mut Q) {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 fn run_avx2<Q: WideQuery>(query: &mut Q) {
-    query.run(&Avx2Factory)
+    query.run(&Avx2Factory(()))
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -1044,6 +1065,119 @@ pub fn query_many<const ANY: bool, O>(
             rays,
             out,
             answer,
+        },
+    );
+}
+
+/// Occlusion of a run of rays over an 8-wide triangle tree from its root
+/// (not empty), `out[i]` answering `rays[i]`: with the AVX2 kernel in
+/// packets of eight rays of one direction octant (see
+/// [`super::packet`]), with the others ray by ray as [`query_many`]. The
+/// answers are the single-ray kernel's.
+pub fn occluded_many(
+    nodes: &[WideNode<8>],
+    blocks: &[Triangle4],
+    kernel: Kernel,
+    rays: &[Ray],
+    out: &mut [bool],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if kernel == Kernel::Avx2 && kernel.is_available() {
+        // SAFETY: the CPU has AVX2 and FMA (checked just above).
+        return unsafe { occluded_packets_avx2(nodes, blocks, rays, out) };
+    }
+    query_many::<true, _>(nodes, blocks, kernel, rays, out, |h| h.is_some());
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn occluded_packets_avx2(
+    nodes: &[WideNode<8>],
+    blocks: &[Triangle4],
+    rays: &[Ray],
+    out: &mut [bool],
+) {
+    use super::packet::{PACKET, Packet8, PacketLanes, occluded_in_packets, occluded_packet};
+    /// The packet's rays' prepared forms: watertight rays for the leaves,
+    /// single-ray testers made when a lane goes on alone.
+    struct Lanes<'a> {
+        nodes: &'a [WideNode<8>],
+        blocks: &'a [Triangle4],
+        rays: &'a [&'a Ray],
+        wrays: [WatertightRay; PACKET],
+        testers: [Option<x86::Avx2Tester>; PACKET],
+    }
+    impl PacketLanes for Lanes<'_> {
+        #[inline(always)]
+        fn leaf(&mut self, lane: usize, first: u32, count: u32) -> bool {
+            let r = self.rays[lane];
+            let wray = &self.wrays[lane];
+            intersect_blocks::<true>(
+                self.blocks,
+                wray,
+                r.t_min,
+                first,
+                count,
+                &mut r.t_max.clone(),
+                &mut None,
+                true,
+            )
+        }
+        #[inline(always)]
+        fn alone(&mut self, lane: usize, node: u32) -> bool {
+            let r = self.rays[lane];
+            // SAFETY: `Lanes` exist only inside `occluded_packets_avx2`,
+            // which runs only on CPUs with AVX2 and FMA.
+            let tester = self.testers[lane]
+                .get_or_insert_with(|| unsafe { x86::Avx2Tester::new(r.origin, r.dir, r.t_min) });
+            subtree_with::<8, true, _>(
+                self.nodes,
+                self.blocks,
+                tester,
+                &self.wrays[lane],
+                r.t_min,
+                node,
+                r.t_max,
+                &mut TraversalCounters::default(),
+            )
+            .is_some()
+        }
+    }
+    occluded_in_packets(
+        rays,
+        out,
+        |ray| {
+            // SAFETY: this function runs only on CPUs with AVX2 and FMA.
+            let tester = unsafe { x86::Avx2Tester::new(ray.origin, ray.dir, ray.t_min) };
+            let wray = WatertightRay::new(ray.origin, ray.dir);
+            subtree_with::<8, true, _>(
+                nodes,
+                blocks,
+                &tester,
+                &wray,
+                ray.t_min,
+                0,
+                ray.t_max,
+                &mut TraversalCounters::default(),
+            )
+            .is_some()
+        },
+        |rays| {
+            // SAFETY: as above.
+            let packet = unsafe { Packet8::new(rays) };
+            // Unused lanes repeat the first ray (never read).
+            let wrays = std::array::from_fn(|l| {
+                let r = rays.get(l).unwrap_or(&rays[0]);
+                WatertightRay::new(r.origin, r.dir)
+            });
+            let mut lanes = Lanes {
+                nodes,
+                blocks,
+                rays,
+                wrays,
+                testers: [None; PACKET],
+            };
+            occluded_packet(nodes, &packet, &mut lanes)
         },
     );
 }

@@ -8,7 +8,8 @@ use rayon::prelude::*;
 
 use crate::bvh::triangle4::block_hit_record;
 use crate::bvh::{
-    BuildParams, Kernel, TraversalCounters, WideTriangleBvh, query_many, query_subtree,
+    BuildParams, Kernel, TraversalCounters, WideTriangleBvh, occluded_many, query_many,
+    query_subtree,
 };
 use crate::{Error, Hit, MeshBvh, Ray, TriangleMesh};
 
@@ -141,9 +142,7 @@ impl FlatAccel {
     pub fn occluded_many(&self, rays: &[Ray], out: &mut [bool]) {
         match &self.wide {
             Some(w) if !self.bvh.bvh.nodes.is_empty() => {
-                query_many::<true, _>(&w.wide.nodes, &w.blocks, self.kernel, rays, out, |h| {
-                    h.is_some()
-                })
+                occluded_many(&w.wide.nodes, &w.blocks, self.kernel, rays, out)
             }
             _ => {
                 assert_eq!(rays.len(), out.len(), "one output per ray");

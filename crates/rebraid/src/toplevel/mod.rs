@@ -20,7 +20,7 @@ use crate::bvh::triangle4::{Triangle4, block_hit_record, intersect_blocks, leaf_
 use crate::bvh::wide::{WIDE_EMPTY, WIDE_MAX_PRIMITIVES, decode_leaf, encode_leaf, is_leaf_ref};
 use crate::bvh::{
     BoxRay, BoxTester, Bvh, BvhNode, Kernel, SahCosts, TRAVERSAL_STACK, TesterFactory,
-    TraversalCounters, WideBvh, WideQuery, WideTriangleBvh, subtree_with, traverse_with,
+    TraversalCounters, WideBvh, WideNode, WideQuery, WideTriangleBvh, subtree_with, traverse_with,
     with_kernel,
 };
 use crate::transform::{transform_box, transform_normal};
@@ -631,83 +631,136 @@ fn walk_ray<const ANY: bool, F: TesterFactory>(
         return None;
     };
     let world = factory.make(ray);
-    // The world ray's shear only for refs placed directly (made on the
-    // first: scenes of instances never need it).
-    let mut wray: Option<WatertightRay> = None;
-    // Prepared instance rays, direct-mapped by instance id: refs of a
-    // few overlapping instances alternate along a ray.
-    let mut cached: [Option<InstanceRay<F::Tester>>; INSTANCE_CACHE] = [None; INSTANCE_CACHE];
-    let mut inner = TraversalCounters::default();
-    let mut best = None;
-    traverse_with::<ANY, _, _>(
-        &wide.nodes,
-        &world,
-        0,
-        ray.t_max,
-        counters,
-        #[inline(always)]
-        |first, count, t_max| {
-            if first >= a.block_base {
-                // An object leaf's triangle blocks, copied into the top
-                // level (see `inline_leaf_blocks`): tested here, and
-                // counted once, as the top-level leaf it is.
-                let wray = wray.get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
-                let mut hit = None;
-                let stop = intersect_blocks::<ANY>(
-                    &a.blocks,
-                    wray,
-                    ray.t_min,
-                    first - a.block_base,
-                    count,
-                    t_max,
-                    &mut hit,
-                    <F::Tester as BoxTester<8>>::SIMD_TRIANGLES,
-                );
-                // The entries' tie rule: an equal distance keeps the
-                // earlier hit (the blocks were tested against `t_max`
-                // inclusive, which equals the best hit's distance).
-                if let Some((t, u, v, k)) = hit
-                    && (ANY || best.is_none_or(|b: RefHit| t < b.0))
-                {
-                    best = Some((t, u, v, k, INLINE_HIT));
-                }
-                return stop;
+    let mut state = RayState::new(ray);
+    state.walk_from::<ANY, F>(a, &wide.nodes, factory, &world, 0, counters);
+    counters.inner_visited += state.inner.inner_visited;
+    counters.leaves_visited += state.inner.leaves_visited;
+    state.best
+}
+
+/// What one ray's walk through the top level keeps besides its box
+/// tester: the world ray's shear (made for the first ref placed directly:
+/// scenes of instances never need it), the prepared instance rays, the
+/// object levels' visit counts and the best hit so far.
+struct RayState<'r, T> {
+    ray: &'r Ray,
+    wray: Option<WatertightRay>,
+    /// Prepared instance rays, direct-mapped by instance id: refs of a few
+    /// overlapping instances alternate along a ray.
+    cached: [Option<InstanceRay<T>>; INSTANCE_CACHE],
+    inner: TraversalCounters,
+    best: Option<RefHit>,
+}
+
+impl<'r, T: BoxTester<8> + Copy> RayState<'r, T> {
+    #[inline(always)]
+    fn new(ray: &'r Ray) -> Self {
+        Self {
+            ray,
+            wray: None,
+            cached: [None; INSTANCE_CACHE],
+            inner: TraversalCounters::default(),
+            best: None,
+        }
+    }
+
+    /// Walk the top level from node `start` (whose box the ray entered)
+    /// with the ray's tester `world`.
+    #[inline(always)]
+    fn walk_from<const ANY: bool, F: TesterFactory<Tester = T>>(
+        &mut self,
+        a: &TopLevelAccel,
+        nodes: &[WideNode<8>],
+        factory: &F,
+        world: &T,
+        start: u32,
+        counters: &mut TraversalCounters,
+    ) {
+        traverse_with::<ANY, _, _>(
+            nodes,
+            world,
+            start,
+            self.ray.t_max,
+            counters,
+            #[inline(always)]
+            |first, count, t_max| self.leaf::<ANY, F>(a, factory, world, first, count, t_max),
+        );
+    }
+
+    /// A top-level leaf: its copied blocks or its entries into the object
+    /// BVHs; returns `true` to stop (any hit).
+    #[inline(always)]
+    fn leaf<const ANY: bool, F: TesterFactory<Tester = T>>(
+        &mut self,
+        a: &TopLevelAccel,
+        factory: &F,
+        world: &T,
+        first: u32,
+        count: u32,
+        t_max: &mut f32,
+    ) -> bool {
+        let ray = self.ray;
+        if first >= a.block_base {
+            // An object leaf's triangle blocks, copied into the top
+            // level (see `inline_leaf_blocks`): tested here, and
+            // counted once, as the top-level leaf it is.
+            let wray = self
+                .wray
+                .get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
+            let mut hit = None;
+            let stop = intersect_blocks::<ANY>(
+                &a.blocks,
+                wray,
+                ray.t_min,
+                first - a.block_base,
+                count,
+                t_max,
+                &mut hit,
+                T::SIMD_TRIANGLES,
+            );
+            // The entries' tie rule: an equal distance keeps the
+            // earlier hit (the blocks were tested against `t_max`
+            // inclusive, which equals the best hit's distance).
+            if let Some((t, u, v, k)) = hit
+                && (ANY || self.best.is_none_or(|b: RefHit| t < b.0))
+            {
+                self.best = Some((t, u, v, k, INLINE_HIT));
             }
-            for ri in first..first + count {
-                let r = &a.entries[ri as usize];
-                let Some(obj) = a.objects.get(r.object as usize).and_then(|o| o.as_deref()) else {
-                    continue;
-                };
-                let hit = if r.instance == INVALID_ID {
-                    let wray = wray.get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
-                    obj.query_entry::<ANY, _>(r.wide, r.node, ray, wray, &world, *t_max, &mut inner)
-                } else {
-                    let slot = &mut cached[r.instance as usize % INSTANCE_CACHE];
-                    if slot.as_ref().is_none_or(|c| c.0 != r.instance) {
-                        let (lr, lw) = a.instances[r.instance as usize].local_ray(ray);
-                        let lt = factory.make(&lr);
-                        *slot = Some((r.instance, lr, lw, lt));
-                    }
-                    let (_, lr, lw, lt) = slot.as_ref().expect("set just above");
-                    obj.query_entry::<ANY, _>(r.wide, r.node, lr, lw, lt, *t_max, &mut inner)
-                };
-                if let Some((t, u, v, k)) = hit {
-                    if ANY {
-                        best = Some((t, u, v, k, ri));
-                        return true;
-                    }
-                    if best.is_none_or(|b: RefHit| t < b.0) {
-                        *t_max = t;
-                        best = Some((t, u, v, k, ri));
-                    }
+            return stop;
+        }
+        for ri in first..first + count {
+            let r = &a.entries[ri as usize];
+            let Some(obj) = a.objects.get(r.object as usize).and_then(|o| o.as_deref()) else {
+                continue;
+            };
+            let hit = if r.instance == INVALID_ID {
+                let wray = self
+                    .wray
+                    .get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
+                obj.query_entry::<ANY, _>(r.wide, r.node, ray, wray, world, *t_max, &mut self.inner)
+            } else {
+                let slot = &mut self.cached[r.instance as usize % INSTANCE_CACHE];
+                if slot.as_ref().is_none_or(|c| c.0 != r.instance) {
+                    let (lr, lw) = a.instances[r.instance as usize].local_ray(ray);
+                    let lt = factory.make(&lr);
+                    *slot = Some((r.instance, lr, lw, lt));
+                }
+                let (_, lr, lw, lt) = slot.as_ref().expect("set just above");
+                obj.query_entry::<ANY, _>(r.wide, r.node, lr, lw, lt, *t_max, &mut self.inner)
+            };
+            if let Some((t, u, v, k)) = hit {
+                if ANY {
+                    self.best = Some((t, u, v, k, ri));
+                    return true;
+                }
+                if self.best.is_none_or(|b: RefHit| t < b.0) {
+                    *t_max = t;
+                    self.best = Some((t, u, v, k, ri));
                 }
             }
-            false
-        },
-    );
-    counters.inner_visited += inner.inner_visited;
-    counters.leaves_visited += inner.leaves_visited;
-    best
+        }
+        false
+    }
 }
 
 /// One ray's query, run by [`with_kernel`].
@@ -752,6 +805,97 @@ where
             };
             *o = (self.answer)(a, hit);
         }
+    }
+}
+
+/// Occlusion in packets through the top level (AVX2).
+#[cfg(target_arch = "x86_64")]
+mod packets {
+    use super::{RayState, TopLevelAccel};
+    use crate::Ray;
+    use crate::bvh::packet::{PACKET, Packet8, PacketLanes, occluded_in_packets, occluded_packet};
+    use crate::bvh::simd::Avx2Factory;
+    use crate::bvh::simd::x86::Avx2Tester;
+    use crate::bvh::{TesterFactory, TraversalCounters, WideNode};
+
+    /// A packet's rays: each lane's world tester (made when the lane first
+    /// needs it) and walk state.
+    struct Lanes<'a> {
+        accel: &'a TopLevelAccel,
+        nodes: &'a [WideNode<8>],
+        factory: &'a Avx2Factory,
+        rays: &'a [&'a Ray],
+        worlds: [Option<Avx2Tester>; PACKET],
+        states: [RayState<'a, Avx2Tester>; PACKET],
+    }
+
+    impl PacketLanes for Lanes<'_> {
+        #[inline(always)]
+        fn leaf(&mut self, lane: usize, first: u32, count: u32) -> bool {
+            let r = self.rays[lane];
+            let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
+            let mut t_max = r.t_max;
+            self.states[lane].leaf::<true, _>(
+                self.accel,
+                self.factory,
+                world,
+                first,
+                count,
+                &mut t_max,
+            )
+        }
+
+        #[inline(always)]
+        fn alone(&mut self, lane: usize, node: u32) -> bool {
+            let r = self.rays[lane];
+            let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
+            let state = &mut self.states[lane];
+            state.walk_from::<true, _>(
+                self.accel,
+                self.nodes,
+                self.factory,
+                world,
+                node,
+                &mut TraversalCounters::default(),
+            );
+            state.best.is_some()
+        }
+    }
+
+    /// See [`TopLevelAccel::occluded_many`]; `nodes` is the wide top level.
+    /// A target-feature function, so that the closures below are compiled
+    /// for AVX2 too: left to inherit it by inlining, they were not, and
+    /// every intrinsic of the packet test became a call (ten times slower).
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) fn occluded(
+        accel: &TopLevelAccel,
+        nodes: &[WideNode<8>],
+        factory: &Avx2Factory,
+        rays: &[Ray],
+        out: &mut [bool],
+    ) {
+        occluded_in_packets(
+            rays,
+            out,
+            |ray| {
+                super::walk_ray::<true, _>(accel, ray, factory, &mut TraversalCounters::default())
+                    .is_some()
+            },
+            |rays| {
+                // SAFETY: an `Avx2Factory` exists only where the CPU has
+                // AVX2 and FMA.
+                let packet = unsafe { Packet8::new(rays) };
+                let mut lanes = Lanes {
+                    accel,
+                    nodes,
+                    factory,
+                    rays,
+                    worlds: [None; PACKET],
+                    states: std::array::from_fn(|l| RayState::new(rays.get(l).unwrap_or(&rays[0]))),
+                };
+                occluded_packet(nodes, &packet, &mut lanes)
+            },
+        );
     }
 }
 
@@ -916,8 +1060,25 @@ impl TopLevelAccel {
 
     /// Occlusion of a run of rays on the calling thread (see
     /// [`TopLevelAccel::intersect_many`]).
+    ///
+    /// With the AVX2 kernel the rays go through the top level in packets of
+    /// eight of one direction octant ([`crate::bvh::packet`]), each ray on
+    /// alone from its entries into the object BVHs and where few rays of
+    /// its packet remain; the answers are the single-ray kernel's.
     pub fn occluded_many(&self, rays: &[Ray], out: &mut [bool]) {
         assert_eq!(rays.len(), out.len(), "one output per ray");
+        #[cfg(target_arch = "x86_64")]
+        if self.kernel == Kernel::Avx2
+            && let Some(wide) = &self.wide
+            && crate::bvh::simd::with_avx2(|f| {
+                // SAFETY: an `Avx2Factory` exists only where the CPU has
+                // AVX2 and FMA.
+                unsafe { packets::occluded(self, &wide.nodes, f, rays, out) }
+            })
+            .is_some()
+        {
+            return;
+        }
         let mut walk = BatchWalk::<true, _, _> {
             accel: self,
             rays,
