@@ -146,6 +146,22 @@ pub trait PacketLanes {
     /// Finish lane `lane`'s ray alone (the single-ray kernel) in the
     /// subtree of inner node `node`, whose box it entered; `true` on a hit.
     fn alone(&mut self, lane: usize, node: u32) -> bool;
+    /// Test leaf `(first, count)` for the rays of the lanes in `mask` (the
+    /// packet's); returns the lanes hit. Lane by lane unless overridden
+    /// (the top level takes a packet on into an object BVH).
+    #[inline(always)]
+    fn leaf_packet(&mut self, packet: &Packet8, mask: u32, first: u32, count: u32) -> u32 {
+        let _ = packet;
+        let (mut m, mut hit) = (mask, 0);
+        while m != 0 {
+            let lane = m.trailing_zeros() as usize;
+            m &= m - 1;
+            if self.leaf(lane, first, count) {
+                hit |= 1 << lane;
+            }
+        }
+        hit
+    }
 }
 
 /// Occlusion of a packet's rays in the 8-wide tree `nodes` from its root:
@@ -157,23 +173,30 @@ pub fn occluded_packet(
     packet: &Packet8,
     lanes: &mut impl PacketLanes,
 ) -> u32 {
+    occluded_packet_from(nodes, packet, 0, packet.lanes, lanes)
+}
+
+/// [`occluded_packet`] for the lanes of `mask` from inner node `start`,
+/// whose box their rays entered.
+#[inline(always)]
+pub fn occluded_packet_from(
+    nodes: &[WideNode<8>],
+    packet: &Packet8,
+    start: u32,
+    mask: u32,
+    lanes: &mut impl PacketLanes,
+) -> u32 {
+    let all = mask;
     let mut stack = [MaybeUninit::<(u32, u32)>::uninit(); PACKET_STACK];
     let mut sp = 0usize;
     let mut done = 0u32;
-    let (mut current, mut mask) = (0u32, packet.lanes);
+    let (mut current, mut mask) = (start, mask);
     loop {
         mask &= !done;
         if mask != 0 {
             if is_leaf_ref(current) {
                 let (first, count) = decode_leaf(current);
-                let mut m = mask;
-                while m != 0 {
-                    let lane = m.trailing_zeros() as usize;
-                    m &= m - 1;
-                    if lanes.leaf(lane, first, count) {
-                        done |= 1 << lane;
-                    }
-                }
+                done |= lanes.leaf_packet(packet, mask, first, count);
             } else if mask.count_ones() < SINGLE_BELOW {
                 let mut m = mask;
                 while m != 0 {
@@ -202,7 +225,7 @@ pub fn occluded_packet(
                 }
             }
         }
-        if sp == 0 || done == packet.lanes {
+        if sp == 0 || done == all {
             return done;
         }
         sp -= 1;

@@ -729,26 +729,7 @@ impl<'r, T: BoxTester<8> + Copy> RayState<'r, T> {
             return stop;
         }
         for ri in first..first + count {
-            let r = &a.entries[ri as usize];
-            let Some(obj) = a.objects.get(r.object as usize).and_then(|o| o.as_deref()) else {
-                continue;
-            };
-            let hit = if r.instance == INVALID_ID {
-                let wray = self
-                    .wray
-                    .get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
-                obj.query_entry::<ANY, _>(r.wide, r.node, ray, wray, world, *t_max, &mut self.inner)
-            } else {
-                let slot = &mut self.cached[r.instance as usize % INSTANCE_CACHE];
-                if slot.as_ref().is_none_or(|c| c.0 != r.instance) {
-                    let (lr, lw) = a.instances[r.instance as usize].local_ray(ray);
-                    let lt = factory.make(&lr);
-                    *slot = Some((r.instance, lr, lw, lt));
-                }
-                let (_, lr, lw, lt) = slot.as_ref().expect("set just above");
-                obj.query_entry::<ANY, _>(r.wide, r.node, lr, lw, lt, *t_max, &mut self.inner)
-            };
-            if let Some((t, u, v, k)) = hit {
+            if let Some((t, u, v, k)) = self.entry::<ANY, F>(a, factory, world, ri, *t_max) {
                 if ANY {
                     self.best = Some((t, u, v, k, ri));
                     return true;
@@ -760,6 +741,48 @@ impl<'r, T: BoxTester<8> + Copy> RayState<'r, T> {
             }
         }
         false
+    }
+
+    /// The closest (or, with `ANY`, some) hit within `t_max` through entry
+    /// `ri`, as [`ObjectBvh::query_entry`] reports it.
+    #[inline(always)]
+    fn entry<const ANY: bool, F: TesterFactory<Tester = T>>(
+        &mut self,
+        a: &TopLevelAccel,
+        factory: &F,
+        world: &T,
+        ri: u32,
+        t_max: f32,
+    ) -> Option<(f32, f32, f32, u32)> {
+        let ray = self.ray;
+        let r = &a.entries[ri as usize];
+        let obj = a
+            .objects
+            .get(r.object as usize)
+            .and_then(|o| o.as_deref())?;
+        if r.instance == INVALID_ID {
+            let wray = self
+                .wray
+                .get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
+            obj.query_entry::<ANY, _>(r.wide, r.node, ray, wray, world, t_max, &mut self.inner)
+        } else {
+            let slot = &mut self.cached[r.instance as usize % INSTANCE_CACHE];
+            if slot.as_ref().is_none_or(|c| c.0 != r.instance) {
+                let (lr, lw) = a.instances[r.instance as usize].local_ray(ray);
+                let lt = factory.make(&lr);
+                *slot = Some((r.instance, lr, lw, lt));
+            }
+            let (_, lr, lw, lt) = slot.as_ref().expect("set just above");
+            obj.query_entry::<ANY, _>(r.wide, r.node, lr, lw, lt, t_max, &mut self.inner)
+        }
+    }
+
+    /// The world ray's watertight form (made on first use).
+    #[inline(always)]
+    fn wray(&mut self) -> &WatertightRay {
+        let ray = self.ray;
+        self.wray
+            .get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir))
     }
 }
 
@@ -812,11 +835,16 @@ where
 #[cfg(target_arch = "x86_64")]
 mod packets {
     use super::{RayState, TopLevelAccel};
-    use crate::Ray;
-    use crate::bvh::packet::{PACKET, Packet8, PacketLanes, occluded_in_packets, occluded_packet};
+    use crate::bvh::packet::{
+        PACKET, Packet8, PacketLanes, SINGLE_BELOW, occluded_in_packets, occluded_packet,
+        occluded_packet_from,
+    };
     use crate::bvh::simd::Avx2Factory;
     use crate::bvh::simd::x86::Avx2Tester;
-    use crate::bvh::{TesterFactory, TraversalCounters, WideNode};
+    use crate::bvh::triangle4::{Triangle4, intersect_blocks};
+    use crate::bvh::wide::is_leaf_ref;
+    use crate::bvh::{TesterFactory, TraversalCounters, WideNode, subtree_with};
+    use crate::{INVALID_ID, Ray};
 
     /// A packet's rays: each lane's world tester (made when the lane first
     /// needs it) and walk state.
@@ -829,10 +857,133 @@ mod packets {
         states: [RayState<'a, Avx2Tester>; PACKET],
     }
 
-    impl PacketLanes for Lanes<'_> {
+    /// A packet's rays inside an object BVH placed directly (world space):
+    /// the same packet, each lane's leaves and lone walks with the lane's
+    /// own watertight ray and tester.
+    struct ObjectLanes<'a, 'r> {
+        blocks: &'a [Triangle4],
+        nodes: &'a [WideNode<8>],
+        factory: &'a Avx2Factory,
+        rays: &'a [&'r Ray],
+        worlds: &'a mut [Option<Avx2Tester>; PACKET],
+        states: &'a mut [RayState<'r, Avx2Tester>; PACKET],
+    }
+
+    impl PacketLanes for ObjectLanes<'_, '_> {
         #[inline(always)]
         fn leaf(&mut self, lane: usize, first: u32, count: u32) -> bool {
             let r = self.rays[lane];
+            let wray = self.states[lane].wray();
+            intersect_blocks::<true>(
+                self.blocks,
+                wray,
+                r.t_min,
+                first,
+                count,
+                &mut r.t_max.clone(),
+                &mut None,
+                true,
+            )
+        }
+
+        #[inline(always)]
+        fn alone(&mut self, lane: usize, node: u32) -> bool {
+            let r = self.rays[lane];
+            let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
+            let wray = self.states[lane].wray();
+            subtree_with::<8, true, _>(
+                self.nodes,
+                self.blocks,
+                world,
+                wray,
+                r.t_min,
+                node,
+                r.t_max,
+                &mut TraversalCounters::default(),
+            )
+            .is_some()
+        }
+    }
+
+    impl PacketLanes for Lanes<'_> {
+        /// Entries into object BVHs placed directly take the packet on
+        /// into the object's wide tree (the world ray is the object's ray,
+        /// so the packet's constants hold there); instanced entries,
+        /// copied blocks and entries few rays reach go lane by lane.
+        #[inline(always)]
+        fn leaf_packet(&mut self, packet: &Packet8, mask: u32, first: u32, count: u32) -> u32 {
+            let a = self.accel;
+            if first >= a.block_base {
+                // Copied blocks: lane by lane.
+                let (mut m, mut hit) = (mask, 0);
+                while m != 0 {
+                    let lane = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    if self.leaf(lane, first, count) {
+                        hit |= 1 << lane;
+                    }
+                }
+                return hit;
+            }
+            let mut left = mask;
+            for ri in first..first + count {
+                if left == 0 {
+                    break;
+                }
+                let e = &a.entries[ri as usize];
+                let Some(obj) = a.objects.get(e.object as usize).and_then(|o| o.as_deref()) else {
+                    continue;
+                };
+                if e.instance == INVALID_ID
+                    && left.count_ones() >= SINGLE_BELOW
+                    && !is_leaf_ref(e.wide)
+                    && let Some(w) = &obj.wide
+                {
+                    let mut sub = ObjectLanes {
+                        blocks: &w.blocks,
+                        nodes: &w.wide.nodes,
+                        factory: self.factory,
+                        rays: self.rays,
+                        worlds: &mut self.worlds,
+                        states: &mut self.states,
+                    };
+                    left &= !occluded_packet_from(&w.wide.nodes, packet, e.wide, left, &mut sub);
+                    continue;
+                }
+                let mut m = left;
+                while m != 0 {
+                    let lane = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    let r = self.rays[lane];
+                    let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
+                    if self.states[lane]
+                        .entry::<true, _>(a, self.factory, world, ri, r.t_max)
+                        .is_some()
+                    {
+                        left &= !(1 << lane);
+                    }
+                }
+            }
+            mask & !left
+        }
+
+        #[inline(always)]
+        fn leaf(&mut self, lane: usize, first: u32, count: u32) -> bool {
+            let r = self.rays[lane];
+            let a = self.accel;
+            if first >= a.block_base {
+                // Copied blocks need no box tester: not made for them.
+                return intersect_blocks::<true>(
+                    &a.blocks,
+                    self.states[lane].wray(),
+                    r.t_min,
+                    first - a.block_base,
+                    count,
+                    &mut r.t_max.clone(),
+                    &mut None,
+                    true,
+                );
+            }
             let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
             let mut t_max = r.t_max;
             self.states[lane].leaf::<true, _>(
