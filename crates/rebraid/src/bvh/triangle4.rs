@@ -420,9 +420,9 @@ mod x86 {
         unsafe {
             let (kx, ky, kz) = (r.kx, r.ky, r.kz);
             let o = [
-                _mm_set1_ps(r.origin[kx]),
-                _mm_set1_ps(r.origin[ky]),
-                _mm_set1_ps(r.origin[kz]),
+                _mm_set1_ps(r.origin_k[0]),
+                _mm_set1_ps(r.origin_k[1]),
+                _mm_set1_ps(r.origin_k[2]),
             ];
             let (sx, sy, sz) = (_mm_set1_ps(r.sx), _mm_set1_ps(r.sy), _mm_set1_ps(r.sz));
             // Vertex `i` relative to the origin, sheared: (x, y, z) with z
