@@ -48,19 +48,24 @@ fn all_modes_vs_brute_with(model: &Model, rays: &[Ray], what: &str, params: Scen
     }
 }
 
+/// Clustered objects, grids and mirrored instances: heavy overlap.
+fn clustered_with_instances() -> Gen {
+    Gen {
+        clustered: 10,
+        scattered: 0,
+        grids: 2,
+        prototypes: 3,
+        instances: 25,
+        tris: 80,
+        mirror: true,
+    }
+}
+
 #[test]
 fn random_instanced_scenes_match_brute_force_in_every_mode() {
     let shapes = [
         Gen::default(),
-        Gen {
-            clustered: 10,
-            scattered: 0,
-            grids: 2,
-            prototypes: 3,
-            instances: 25,
-            tris: 80,
-            mirror: true,
-        },
+        clustered_with_instances(),
         Gen {
             clustered: 3,
             scattered: 1,
@@ -98,20 +103,9 @@ fn random_instanced_scenes_match_brute_force_in_every_mode() {
 /// are mixed in, and each light's rays come in all eight octants.
 #[test]
 fn coherent_rays_in_packets_match_brute_force_in_every_mode() {
-    for (seed, g) in [
-        Gen::default(),
-        Gen {
-            clustered: 10,
-            scattered: 0,
-            grids: 2,
-            prototypes: 3,
-            instances: 25,
-            tris: 80,
-            mirror: true,
-        },
-    ]
-    .iter()
-    .enumerate()
+    for (seed, g) in [Gen::default(), clustered_with_instances()]
+        .iter()
+        .enumerate()
     {
         let mut rng = rng(300 + seed as u64);
         let model = random_model(&mut rng, g);

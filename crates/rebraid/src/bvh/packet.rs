@@ -152,16 +152,28 @@ pub trait PacketLanes {
     #[inline(always)]
     fn leaf_packet(&mut self, packet: &Packet8, mask: u32, first: u32, count: u32) -> u32 {
         let _ = packet;
-        let (mut m, mut hit) = (mask, 0);
-        while m != 0 {
-            let lane = m.trailing_zeros() as usize;
-            m &= m - 1;
-            if self.leaf(lane, first, count) {
-                hit |= 1 << lane;
-            }
-        }
-        hit
+        leaf_by_lane(self, mask, first, count)
     }
+}
+
+/// Leaf `(first, count)` tested for each lane of `mask` alone
+/// ([`PacketLanes::leaf`]); returns the lanes hit.
+#[inline(always)]
+pub fn leaf_by_lane(
+    lanes: &mut (impl PacketLanes + ?Sized),
+    mask: u32,
+    first: u32,
+    count: u32,
+) -> u32 {
+    let (mut m, mut hit) = (mask, 0);
+    while m != 0 {
+        let lane = m.trailing_zeros() as usize;
+        m &= m - 1;
+        if lanes.leaf(lane, first, count) {
+            hit |= 1 << lane;
+        }
+    }
+    hit
 }
 
 /// Occlusion of a packet's rays in the 8-wide tree `nodes` from its root:

@@ -1082,78 +1082,103 @@ pub fn occluded_many(
     out: &mut [bool],
 ) {
     #[cfg(target_arch = "x86_64")]
-    if kernel == Kernel::Avx2 && kernel.is_available() {
-        // SAFETY: the CPU has AVX2 and FMA (checked just above).
-        return unsafe { occluded_packets_avx2(nodes, blocks, rays, out) };
+    if kernel == Kernel::Avx2
+        && with_avx2(|f| {
+            // SAFETY: an `Avx2Factory` exists only where the CPU has AVX2
+            // and FMA.
+            unsafe { occluded_packets_avx2(f, nodes, blocks, rays, out) }
+        })
+        .is_some()
+    {
+        return;
     }
     query_many::<true, _>(nodes, blocks, kernel, rays, out, |h| h.is_some());
 }
 
+/// The watertight rays of a packet's lanes.
+#[cfg(target_arch = "x86_64")]
+pub(crate) trait LaneWrays {
+    fn wray(&mut self, lane: usize) -> &WatertightRay;
+}
+
+#[cfg(target_arch = "x86_64")]
+impl LaneWrays for [WatertightRay; super::packet::PACKET] {
+    #[inline(always)]
+    fn wray(&mut self, lane: usize) -> &WatertightRay {
+        &self[lane]
+    }
+}
+
+/// A packet's rays in an 8-wide triangle tree (a flat scene's, or an
+/// object's placed directly, entered from the top level): each lane's
+/// leaves are tested and its lone walks run with the lane's own watertight
+/// ray and single-ray tester (made when first needed).
+#[cfg(target_arch = "x86_64")]
+pub(crate) struct TriangleLanes<'a, 'r, W> {
+    pub nodes: &'a [WideNode<8>],
+    pub blocks: &'a [Triangle4],
+    pub factory: &'a Avx2Factory,
+    pub rays: &'a [&'r Ray],
+    pub testers: &'a mut [Option<x86::Avx2Tester>; super::packet::PACKET],
+    pub wrays: W,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl<W: LaneWrays> super::packet::PacketLanes for TriangleLanes<'_, '_, W> {
+    #[inline(always)]
+    fn leaf(&mut self, lane: usize, first: u32, count: u32) -> bool {
+        let r = self.rays[lane];
+        intersect_blocks::<true>(
+            self.blocks,
+            self.wrays.wray(lane),
+            r.t_min,
+            first,
+            count,
+            &mut r.t_max.clone(),
+            &mut None,
+            true,
+        )
+    }
+
+    #[inline(always)]
+    fn alone(&mut self, lane: usize, node: u32) -> bool {
+        let r = self.rays[lane];
+        let tester = self.testers[lane].get_or_insert_with(|| self.factory.make(r));
+        subtree_with::<8, true, _>(
+            self.nodes,
+            self.blocks,
+            tester,
+            self.wrays.wray(lane),
+            r.t_min,
+            node,
+            r.t_max,
+            &mut TraversalCounters::default(),
+        )
+        .is_some()
+    }
+}
+
+/// [`occluded_many`] in packets. A target-feature function so that the
+/// closures inside are compiled for AVX2 (see `toplevel`'s packet path).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 fn occluded_packets_avx2(
+    factory: &Avx2Factory,
     nodes: &[WideNode<8>],
     blocks: &[Triangle4],
     rays: &[Ray],
     out: &mut [bool],
 ) {
-    use super::packet::{PACKET, Packet8, PacketLanes, occluded_in_packets, occluded_packet};
-    /// The packet's rays' prepared forms: watertight rays for the leaves,
-    /// single-ray testers made when a lane goes on alone.
-    struct Lanes<'a> {
-        nodes: &'a [WideNode<8>],
-        blocks: &'a [Triangle4],
-        rays: &'a [&'a Ray],
-        wrays: [WatertightRay; PACKET],
-        testers: [Option<x86::Avx2Tester>; PACKET],
-    }
-    impl PacketLanes for Lanes<'_> {
-        #[inline(always)]
-        fn leaf(&mut self, lane: usize, first: u32, count: u32) -> bool {
-            let r = self.rays[lane];
-            let wray = &self.wrays[lane];
-            intersect_blocks::<true>(
-                self.blocks,
-                wray,
-                r.t_min,
-                first,
-                count,
-                &mut r.t_max.clone(),
-                &mut None,
-                true,
-            )
-        }
-        #[inline(always)]
-        fn alone(&mut self, lane: usize, node: u32) -> bool {
-            let r = self.rays[lane];
-            // SAFETY: `Lanes` exist only inside `occluded_packets_avx2`,
-            // which runs only on CPUs with AVX2 and FMA.
-            let tester = self.testers[lane]
-                .get_or_insert_with(|| unsafe { x86::Avx2Tester::new(r.origin, r.dir, r.t_min) });
-            subtree_with::<8, true, _>(
-                self.nodes,
-                self.blocks,
-                tester,
-                &self.wrays[lane],
-                r.t_min,
-                node,
-                r.t_max,
-                &mut TraversalCounters::default(),
-            )
-            .is_some()
-        }
-    }
+    use super::packet::{PACKET, Packet8, occluded_in_packets, occluded_packet};
     occluded_in_packets(
         rays,
         out,
         |ray| {
-            // SAFETY: this function runs only on CPUs with AVX2 and FMA.
-            let tester = unsafe { x86::Avx2Tester::new(ray.origin, ray.dir, ray.t_min) };
             let wray = WatertightRay::new(ray.origin, ray.dir);
             subtree_with::<8, true, _>(
                 nodes,
                 blocks,
-                &tester,
+                &factory.make(ray),
                 &wray,
                 ray.t_min,
                 0,
@@ -1163,19 +1188,21 @@ fn occluded_packets_avx2(
             .is_some()
         },
         |rays| {
-            // SAFETY: as above.
+            // SAFETY: this function runs only on CPUs with AVX2 and FMA.
             let packet = unsafe { Packet8::new(rays) };
             // Unused lanes repeat the first ray (never read).
-            let wrays = std::array::from_fn(|l| {
+            let wrays: [WatertightRay; PACKET] = std::array::from_fn(|l| {
                 let r = rays.get(l).unwrap_or(&rays[0]);
                 WatertightRay::new(r.origin, r.dir)
             });
-            let mut lanes = Lanes {
+            let mut testers = [None; PACKET];
+            let mut lanes = TriangleLanes {
                 nodes,
                 blocks,
+                factory,
                 rays,
+                testers: &mut testers,
                 wrays,
-                testers: [None; PACKET],
             };
             occluded_packet(nodes, &packet, &mut lanes)
         },

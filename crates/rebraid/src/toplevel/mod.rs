@@ -836,14 +836,15 @@ where
 mod packets {
     use super::{RayState, TopLevelAccel};
     use crate::bvh::packet::{
-        PACKET, Packet8, PacketLanes, SINGLE_BELOW, occluded_in_packets, occluded_packet,
-        occluded_packet_from,
+        PACKET, Packet8, PacketLanes, SINGLE_BELOW, leaf_by_lane, occluded_in_packets,
+        occluded_packet, occluded_packet_from,
     };
-    use crate::bvh::simd::Avx2Factory;
     use crate::bvh::simd::x86::Avx2Tester;
-    use crate::bvh::triangle4::{Triangle4, intersect_blocks};
+    use crate::bvh::simd::{Avx2Factory, LaneWrays, TriangleLanes};
+    use crate::bvh::triangle4::intersect_blocks;
     use crate::bvh::wide::is_leaf_ref;
-    use crate::bvh::{TesterFactory, TraversalCounters, WideNode, subtree_with};
+    use crate::bvh::{TesterFactory, TraversalCounters, WideNode};
+    use crate::triangle::WatertightRay;
     use crate::{INVALID_ID, Ray};
 
     /// A packet's rays: each lane's world tester (made when the lane first
@@ -857,51 +858,12 @@ mod packets {
         states: [RayState<'a, Avx2Tester>; PACKET],
     }
 
-    /// A packet's rays inside an object BVH placed directly (world space):
-    /// the same packet, each lane's leaves and lone walks with the lane's
-    /// own watertight ray and tester.
-    struct ObjectLanes<'a, 'r> {
-        blocks: &'a [Triangle4],
-        nodes: &'a [WideNode<8>],
-        factory: &'a Avx2Factory,
-        rays: &'a [&'r Ray],
-        worlds: &'a mut [Option<Avx2Tester>; PACKET],
-        states: &'a mut [RayState<'r, Avx2Tester>; PACKET],
-    }
-
-    impl PacketLanes for ObjectLanes<'_, '_> {
+    /// The lanes' watertight rays inside an object BVH placed directly:
+    /// the world rays', kept in the lanes' walk states.
+    impl LaneWrays for &mut [RayState<'_, Avx2Tester>; PACKET] {
         #[inline(always)]
-        fn leaf(&mut self, lane: usize, first: u32, count: u32) -> bool {
-            let r = self.rays[lane];
-            let wray = self.states[lane].wray();
-            intersect_blocks::<true>(
-                self.blocks,
-                wray,
-                r.t_min,
-                first,
-                count,
-                &mut r.t_max.clone(),
-                &mut None,
-                true,
-            )
-        }
-
-        #[inline(always)]
-        fn alone(&mut self, lane: usize, node: u32) -> bool {
-            let r = self.rays[lane];
-            let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
-            let wray = self.states[lane].wray();
-            subtree_with::<8, true, _>(
-                self.nodes,
-                self.blocks,
-                world,
-                wray,
-                r.t_min,
-                node,
-                r.t_max,
-                &mut TraversalCounters::default(),
-            )
-            .is_some()
+        fn wray(&mut self, lane: usize) -> &WatertightRay {
+            self[lane].wray()
         }
     }
 
@@ -915,15 +877,7 @@ mod packets {
             let a = self.accel;
             if first >= a.block_base {
                 // Copied blocks: lane by lane.
-                let (mut m, mut hit) = (mask, 0);
-                while m != 0 {
-                    let lane = m.trailing_zeros() as usize;
-                    m &= m - 1;
-                    if self.leaf(lane, first, count) {
-                        hit |= 1 << lane;
-                    }
-                }
-                return hit;
+                return leaf_by_lane(self, mask, first, count);
             }
             let mut left = mask;
             for ri in first..first + count {
@@ -939,13 +893,15 @@ mod packets {
                     && !is_leaf_ref(e.wide)
                     && let Some(w) = &obj.wide
                 {
-                    let mut sub = ObjectLanes {
-                        blocks: &w.blocks,
+                    // The world testers serve inside: the object is in
+                    // world space.
+                    let mut sub = TriangleLanes {
                         nodes: &w.wide.nodes,
+                        blocks: &w.blocks,
                         factory: self.factory,
                         rays: self.rays,
-                        worlds: &mut self.worlds,
-                        states: &mut self.states,
+                        testers: &mut self.worlds,
+                        wrays: &mut self.states,
                     };
                     left &= !occluded_packet_from(&w.wide.nodes, packet, e.wide, left, &mut sub);
                     continue;
