@@ -1121,10 +1121,36 @@ pub(crate) struct TriangleLanes<'a, 'r, W> {
     pub rays: &'a [&'r Ray],
     pub testers: &'a mut [Option<x86::Avx2Tester>; super::packet::PACKET],
     pub wrays: W,
+    /// The packet's triangle-test constants, if its rays share the axis
+    /// permutation.
+    pub triangles: Option<&'a super::packet::TrianglePacket>,
 }
 
 #[cfg(target_arch = "x86_64")]
 impl<W: LaneWrays> super::packet::PacketLanes for TriangleLanes<'_, '_, W> {
+    /// Leaves most of the packet reaches test one triangle for all its
+    /// rays at once.
+    #[inline(always)]
+    fn leaf_packet(
+        &mut self,
+        packet: &super::packet::Packet8,
+        mask: u32,
+        first: u32,
+        count: u32,
+    ) -> u32 {
+        use super::packet::{PACKET_TRIANGLES_FROM, leaf_by_lane, scalar_triangle};
+        let _ = packet;
+        match self.triangles {
+            Some(triangles) if mask.count_ones() >= PACKET_TRIANGLES_FROM => {
+                let (rays, wrays) = (self.rays, &mut self.wrays);
+                triangles.occluded_blocks(self.blocks, first, count, mask, |lane, b, j| {
+                    scalar_triangle(rays[lane], wrays.wray(lane), b, j)
+                })
+            }
+            _ => leaf_by_lane(self, mask, first, count),
+        }
+    }
+
     #[inline(always)]
     fn leaf(&mut self, lane: usize, first: u32, count: u32) -> bool {
         let r = self.rays[lane];
@@ -1169,7 +1195,7 @@ fn occluded_packets_avx2(
     rays: &[Ray],
     out: &mut [bool],
 ) {
-    use super::packet::{PACKET, Packet8, occluded_in_packets, occluded_packet};
+    use super::packet::{PACKET, Packet8, TrianglePacket, occluded_in_packets, occluded_packet};
     occluded_in_packets(
         rays,
         out,
@@ -1195,6 +1221,8 @@ fn occluded_packets_avx2(
                 let r = rays.get(l).unwrap_or(&rays[0]);
                 WatertightRay::new(r.origin, r.dir)
             });
+            // SAFETY: as above.
+            let triangles = unsafe { TrianglePacket::new(rays, |l| wrays[l]) };
             let mut testers = [None; PACKET];
             let mut lanes = TriangleLanes {
                 nodes,
@@ -1203,6 +1231,7 @@ fn occluded_packets_avx2(
                 rays,
                 testers: &mut testers,
                 wrays,
+                triangles: triangles.as_ref(),
             };
             occluded_packet(nodes, &packet, &mut lanes)
         },

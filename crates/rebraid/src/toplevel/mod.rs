@@ -836,8 +836,8 @@ where
 mod packets {
     use super::{RayState, TopLevelAccel};
     use crate::bvh::packet::{
-        PACKET, Packet8, PacketLanes, SINGLE_BELOW, leaf_by_lane, occluded_in_packets,
-        occluded_packet, occluded_packet_from,
+        PACKET, PACKET_TRIANGLES_FROM, Packet8, PacketLanes, SINGLE_BELOW, TrianglePacket,
+        leaf_by_lane, occluded_in_packets, occluded_packet, occluded_packet_from, scalar_triangle,
     };
     use crate::bvh::simd::x86::Avx2Tester;
     use crate::bvh::simd::{Avx2Factory, LaneWrays, TriangleLanes};
@@ -856,6 +856,25 @@ mod packets {
         rays: &'a [&'a Ray],
         worlds: [Option<Avx2Tester>; PACKET],
         states: [RayState<'a, Avx2Tester>; PACKET],
+        /// The packet triangle test's constants, made when a leaf most of
+        /// the packet reaches first needs them (instanced scenes rarely
+        /// do): `Some(None)` when the rays' axis permutations differ.
+        triangles: Option<Option<TrianglePacket>>,
+    }
+
+    impl Lanes<'_> {
+        /// See [`Lanes::triangles`].
+        #[inline(always)]
+        fn triangles(&mut self) -> Option<&TrianglePacket> {
+            if self.triangles.is_none() {
+                let states = &mut self.states;
+                // SAFETY: `Lanes` exist only inside `occluded`, which runs
+                // only on CPUs with AVX2 and FMA.
+                let t = unsafe { TrianglePacket::new(self.rays, |l| *states[l].wray()) };
+                self.triangles = Some(t);
+            }
+            self.triangles.as_ref().and_then(Option::as_ref)
+        }
     }
 
     /// The lanes' watertight rays inside an object BVH placed directly:
@@ -876,8 +895,22 @@ mod packets {
         fn leaf_packet(&mut self, packet: &Packet8, mask: u32, first: u32, count: u32) -> u32 {
             let a = self.accel;
             if first >= a.block_base {
-                // Copied blocks: lane by lane.
-                return leaf_by_lane(self, mask, first, count);
+                // Copied blocks: one triangle for all the rays at once
+                // when most of the packet is here, else lane by lane.
+                if mask.count_ones() < PACKET_TRIANGLES_FROM {
+                    return leaf_by_lane(self, mask, first, count);
+                }
+                let Some(&triangles) = self.triangles() else {
+                    return leaf_by_lane(self, mask, first, count);
+                };
+                let (rays, states) = (self.rays, &mut self.states);
+                return triangles.occluded_blocks(
+                    &a.blocks,
+                    first - a.block_base,
+                    count,
+                    mask,
+                    |lane, b, j| scalar_triangle(rays[lane], states[lane].wray(), b, j),
+                );
             }
             let mut left = mask;
             for ri in first..first + count {
@@ -895,6 +928,7 @@ mod packets {
                 {
                     // The world testers serve inside: the object is in
                     // world space.
+                    let triangles = self.triangles().copied();
                     let mut sub = TriangleLanes {
                         nodes: &w.wide.nodes,
                         blocks: &w.blocks,
@@ -902,6 +936,7 @@ mod packets {
                         rays: self.rays,
                         testers: &mut self.worlds,
                         wrays: &mut self.states,
+                        triangles: triangles.as_ref(),
                     };
                     left &= !occluded_packet_from(&w.wide.nodes, packet, e.wide, left, &mut sub);
                     continue;
@@ -999,6 +1034,7 @@ mod packets {
                     rays,
                     worlds: [None; PACKET],
                     states: std::array::from_fn(|l| RayState::new(rays.get(l).unwrap_or(&rays[0]))),
+                    triangles: None,
                 };
                 occluded_packet(nodes, &packet, &mut lanes)
             },
