@@ -13,8 +13,11 @@
 //! Every lane's box test is the single-ray AVX2 test's arithmetic in the
 //! same order (the same [`FmaSlab`] constants, one FMA per plane, the same
 //! `max`/`min` chain and [`ROBUST_FAR`] pad), so a ray enters exactly the
-//! boxes it enters alone, and the triangle tests are the single-ray ones:
-//! an occlusion answer is the same as the single-ray kernel's.
+//! boxes it enters alone. A leaf that most of a packet reaches tests one
+//! triangle for all its rays at once ([`TrianglePacket`], the four-triangle
+//! test's operations per lane), other leaves one ray at a time: either way
+//! a triangle is hit exactly when the single-ray test hits it, so an
+//! occlusion answer is the same as the single-ray kernel's.
 
 use core::arch::x86_64::*;
 use std::mem::MaybeUninit;
