@@ -1014,6 +1014,29 @@ pub fn query_subtree<const ANY: bool>(
     best
 }
 
+/// One ray's query from the root of an 8-wide triangle tree with the
+/// caller's tester (the ray valid, the tree not empty): the single-ray
+/// body of the batch queries.
+#[inline(always)]
+fn query_root<const ANY: bool, B: BoxTester<8>>(
+    nodes: &[WideNode<8>],
+    blocks: &[Triangle4],
+    tester: &B,
+    ray: &Ray,
+) -> Option<LeafHit> {
+    let wray = WatertightRay::new(ray.origin, ray.dir);
+    subtree_with::<8, ANY, B>(
+        nodes,
+        blocks,
+        tester,
+        &wray,
+        ray.t_min,
+        0,
+        ray.t_max,
+        &mut TraversalCounters::default(),
+    )
+}
+
 /// [`query_subtree`] from the root for a run of rays, `out[i]` answering
 /// `rays[i]` through `answer` (`None` for an invalid ray), with one kernel
 /// dispatch for the whole run instead of one per ray. The tree must not be
@@ -1038,22 +1061,10 @@ pub fn query_many<const ANY: bool, O>(
         #[inline(always)]
         fn run<F: TesterFactory>(&mut self, factory: &F) {
             for (o, ray) in self.out.iter_mut().zip(self.rays) {
-                let mut hit = None;
-                if ray.is_valid() {
-                    let tester = factory.make(ray);
-                    let wray = WatertightRay::new(ray.origin, ray.dir);
-                    hit = subtree_with::<8, ANY, _>(
-                        self.nodes,
-                        self.blocks,
-                        &tester,
-                        &wray,
-                        ray.t_min,
-                        0,
-                        ray.t_max,
-                        &mut TraversalCounters::default(),
-                    );
-                }
-                *o = (self.answer)(hit);
+                let hit = ray.is_valid().then(|| {
+                    query_root::<ANY, _>(self.nodes, self.blocks, &factory.make(ray), ray)
+                });
+                *o = (self.answer)(hit.flatten());
             }
         }
     }
@@ -1199,20 +1210,7 @@ fn occluded_packets_avx2(
     occluded_in_packets(
         rays,
         out,
-        |ray| {
-            let wray = WatertightRay::new(ray.origin, ray.dir);
-            subtree_with::<8, true, _>(
-                nodes,
-                blocks,
-                &factory.make(ray),
-                &wray,
-                ray.t_min,
-                0,
-                ray.t_max,
-                &mut TraversalCounters::default(),
-            )
-            .is_some()
-        },
+        |ray| query_root::<true, _>(nodes, blocks, &factory.make(ray), ray).is_some(),
         |rays| {
             // SAFETY: this function runs only on CPUs with AVX2 and FMA.
             let packet = unsafe { Packet8::new(rays) };

@@ -699,28 +699,13 @@ impl<'r, T: BoxTester<8> + Copy> RayState<'r, T> {
         count: u32,
         t_max: &mut f32,
     ) -> bool {
-        let ray = self.ray;
         if first >= a.block_base {
-            // An object leaf's triangle blocks, copied into the top
-            // level (see `inline_leaf_blocks`): tested here, and
-            // counted once, as the top-level leaf it is.
-            let wray = self
-                .wray
-                .get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
             let mut hit = None;
-            let stop = intersect_blocks::<ANY>(
-                &a.blocks,
-                wray,
-                ray.t_min,
-                first - a.block_base,
-                count,
-                t_max,
-                &mut hit,
-                T::SIMD_TRIANGLES,
-            );
-            // The entries' tie rule: an equal distance keeps the
-            // earlier hit (the blocks were tested against `t_max`
-            // inclusive, which equals the best hit's distance).
+            let stop =
+                self.copied_blocks::<ANY>(a, first, count, t_max, &mut hit, T::SIMD_TRIANGLES);
+            // The entries' tie rule: an equal distance keeps the earlier
+            // hit (the blocks were tested against `t_max` inclusive, which
+            // equals the best hit's distance).
             if let Some((t, u, v, k)) = hit
                 && (ANY || self.best.is_none_or(|b: RefHit| t < b.0))
             {
@@ -741,6 +726,37 @@ impl<'r, T: BoxTester<8> + Copy> RayState<'r, T> {
             }
         }
         false
+    }
+
+    /// A top-level leaf naming an object leaf's triangle blocks copied into
+    /// the top level (see `inline_leaf_blocks`; `first >= a.block_base`):
+    /// tested here, and counted once, as the top-level leaf it is, into
+    /// `hit` (the caller keeps it or not). Needs no box tester. Returns
+    /// `true` to stop (any hit).
+    #[inline(always)]
+    fn copied_blocks<const ANY: bool>(
+        &mut self,
+        a: &TopLevelAccel,
+        first: u32,
+        count: u32,
+        t_max: &mut f32,
+        hit: &mut Option<(f32, f32, f32, u32)>,
+        simd: bool,
+    ) -> bool {
+        let ray = self.ray;
+        let wray = self
+            .wray
+            .get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
+        intersect_blocks::<ANY>(
+            &a.blocks,
+            wray,
+            ray.t_min,
+            first - a.block_base,
+            count,
+            t_max,
+            hit,
+            simd,
+        )
     }
 
     /// The closest (or, with `ANY`, some) hit within `t_max` through entry
@@ -841,7 +857,6 @@ mod packets {
     };
     use crate::bvh::simd::x86::Avx2Tester;
     use crate::bvh::simd::{Avx2Factory, LaneWrays, TriangleLanes};
-    use crate::bvh::triangle4::intersect_blocks;
     use crate::bvh::wide::is_leaf_ref;
     use crate::bvh::{TesterFactory, TraversalCounters, WideNode};
     use crate::triangle::WatertightRay;
@@ -964,11 +979,9 @@ mod packets {
             let a = self.accel;
             if first >= a.block_base {
                 // Copied blocks need no box tester: not made for them.
-                return intersect_blocks::<true>(
-                    &a.blocks,
-                    self.states[lane].wray(),
-                    r.t_min,
-                    first - a.block_base,
+                return self.states[lane].copied_blocks::<true>(
+                    a,
+                    first,
                     count,
                     &mut r.t_max.clone(),
                     &mut None,
