@@ -224,10 +224,9 @@ impl MeshBvh {
         for k in node.prim_range() {
             let [a, b, c] = self.triangles[k];
             if let Some((t, u, v)) = intersect_triangle(wray, a, b, c, t_min, *t_max) {
-                // `intersect_triangle` accepts t == t_max; keep the first of
-                // equal hits so that results do not depend on visiting order
-                // more than necessary.
-                if best.is_none_or(|h| t < h.0) {
+                // `intersect_triangle` accepts t == t_max; an exact tie goes
+                // to the smaller slot (the rule of every kernel).
+                if crate::bvh::triangle4::nearer(t, k as u32, best) {
                     *t_max = t;
                     *best = Some((t, u, v, k as u32));
                 }

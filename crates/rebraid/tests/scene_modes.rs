@@ -139,6 +139,84 @@ fn coherent_rays_in_packets_match_brute_force_in_every_mode() {
     }
 }
 
+/// Exact ties: a height-field grid repeated as coincident surfaces (in two
+/// objects whose other triangles differ, so their trees differ, and twice
+/// within a third), seen by camera rays in pixel order, which the
+/// closest-hit batch traces in packets (AVX2 kernel) that visit leaves in
+/// the packet's order rather than each ray's own. Every answer, triangle
+/// included, must be the single-ray one (`check_scene` compares them
+/// exactly) and a brute-force hit at the closest distance, in every mode
+/// and with every kernel; most rays must meet a tie.
+#[test]
+fn exact_ties_answer_alike_in_packets_and_alone() {
+    let mut rng = rng(500);
+    let g = grid(
+        &mut rng,
+        12,
+        12,
+        Vec3::new(2.0, 4.0, 2.0),
+        Vec3::new(18.0, 6.0, 18.0),
+    );
+    let tris = |m: &TriangleMesh| (0..m.len()).map(|i| m.triangle(i)).collect::<Vec<_>>();
+    let grid_tris = tris(&g);
+    let with_soup = |rng: &mut _, lo: Vec3, hi: Vec3| {
+        let mut t = tris(&soup(rng, 60, lo, hi, 1.5));
+        t.extend(&grid_tris);
+        t.extend(tris(&soup(rng, 60, lo, hi, 1.5)));
+        TriangleMesh::from_triangles(&t).unwrap()
+    };
+    let mut model = Model::default();
+    let a = with_soup(
+        &mut rng,
+        Vec3::new(0.0, 0.0, 0.0),
+        Vec3::new(20.0, 3.0, 8.0),
+    );
+    let b = with_soup(
+        &mut rng,
+        Vec3::new(0.0, 0.0, 12.0),
+        Vec3::new(20.0, 3.0, 20.0),
+    );
+    let mut twice = grid_tris.clone();
+    twice.extend(&grid_tris);
+    model.objects.insert(0, (a, true));
+    model.objects.insert(1, (b, true));
+    model
+        .objects
+        .insert(2, (TriangleMesh::from_triangles(&twice).unwrap(), true));
+    let world = model.world();
+    let eye = Vec3::new(9.3, 30.0, 11.1);
+    let rays: Vec<Ray> = (0..48)
+        .flat_map(|row| (0..64).map(move |col| (row, col)))
+        .map(|(row, col)| {
+            let target = Vec3::new(
+                2.0 + 16.0 * col as f32 / 63.0,
+                5.0,
+                2.0 + 16.0 * row as f32 / 47.0,
+            );
+            Ray {
+                origin: eye,
+                t_min: 0.0,
+                dir: target - eye,
+                t_max: f32::INFINITY,
+            }
+        })
+        .collect();
+    let ties = rays
+        .iter()
+        .filter(|r| {
+            let all = world.all_hits(r);
+            let t = all.iter().map(|h| h.t).fold(f32::INFINITY, f32::min);
+            all.iter().filter(|h| h.t == t).count() >= 2
+        })
+        .count();
+    assert!(
+        ties * 2 > rays.len(),
+        "{ties} of {} rays meet a tie",
+        rays.len()
+    );
+    all_modes_vs_brute(&model, &rays, "exact ties");
+}
+
 /// Object BVHs with leaves larger than a wide leaf holds keep the binary
 /// layout (the traversal's scalar fallback, whose hits name leaf-order
 /// slots rather than block lanes): hits, primitive ids and normals still

@@ -19,8 +19,9 @@ pub use build::{BuildParams, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh, build_bvh_
 pub(crate) use build::{compact_slots, split_slots};
 pub use node::BvhNode;
 pub use simd::{
-    BoxTester, FmaSlab, Kernel, TesterFactory, WIDE_STACK, WideMeshBvh, WideQuery, occluded_many,
-    query_many, query_subtree, subtree_with, traverse_wide, traverse_with, with_kernel,
+    BoxTester, FmaSlab, Kernel, TesterFactory, WIDE_STACK, WideMeshBvh, WideQuery, intersect_many,
+    occluded_many, query_many, query_subtree, subtree_with, traverse_wide, traverse_with,
+    with_kernel,
 };
 pub use stats::{BvhStats, SahCosts};
 pub use traverse::{BoxRay, ROBUST_FAR, TRAVERSAL_STACK, TraversalCounters, TraversalStack};

@@ -1106,6 +1106,222 @@ pub fn occluded_many(
     query_many::<true, _>(nodes, blocks, kernel, rays, out, |h| h.is_some());
 }
 
+/// Closest hits of a run of rays over an 8-wide triangle tree from its
+/// root (not empty), `out[i]` answering `rays[i]` through `answer` (`None`
+/// for an invalid ray): with the AVX2 kernel in packets of eight rays of
+/// one direction octant ([`super::packet::intersect_packet_from`]), with
+/// the others ray by ray as [`query_many`]. Coherent runs (camera rays in
+/// pixel order) form packets, others go ray by ray
+/// ([`super::packet::in_coherent_packets`]). The answers are the
+/// single-ray kernel's, exact ties included.
+pub fn intersect_many<O>(
+    nodes: &[WideNode<8>],
+    blocks: &[Triangle4],
+    kernel: Kernel,
+    rays: &[Ray],
+    out: &mut [O],
+    answer: impl Fn(Option<LeafHit>) -> O,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if kernel == Kernel::Avx2
+        && with_avx2(|f| {
+            // SAFETY: an `Avx2Factory` exists only where the CPU has AVX2
+            // and FMA.
+            unsafe { intersect_packets_avx2(f, nodes, blocks, rays, out, &answer) }
+        })
+        .is_some()
+    {
+        return;
+    }
+    query_many::<false, _>(nodes, blocks, kernel, rays, out, answer);
+}
+
+/// [`intersect_many`] in packets (a target-feature function, as
+/// [`occluded_packets_avx2`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn intersect_packets_avx2<O>(
+    factory: &Avx2Factory,
+    nodes: &[WideNode<8>],
+    blocks: &[Triangle4],
+    rays: &[Ray],
+    out: &mut [O],
+    answer: &impl Fn(Option<LeafHit>) -> O,
+) {
+    use super::packet::{
+        PACKET, Packet8, TrianglePacket, in_coherent_packets, intersect_packet_from,
+    };
+    in_coherent_packets(
+        rays,
+        out,
+        |rays, out| {
+            for (o, ray) in out.iter_mut().zip(rays) {
+                let hit = ray
+                    .is_valid()
+                    .then(|| query_root::<false, _>(nodes, blocks, &factory.make(ray), ray));
+                *o = answer(hit.flatten());
+            }
+        },
+        |rays, answers| {
+            // SAFETY: this function runs only on CPUs with AVX2 and FMA.
+            let mut packet = unsafe { Packet8::new(rays) };
+            let wrays: [WatertightRay; PACKET] = std::array::from_fn(|l| {
+                let r = rays.get(l).unwrap_or(&rays[0]);
+                WatertightRay::new(r.origin, r.dir)
+            });
+            // SAFETY: as above.
+            let triangles = unsafe { TrianglePacket::new(rays, |l| wrays[l]) };
+            let mut testers = [None; PACKET];
+            let mut lanes = ClosestTriangleLanes {
+                lanes: TriangleLanes {
+                    nodes,
+                    blocks,
+                    factory,
+                    rays,
+                    testers: &mut testers,
+                    wrays,
+                    triangles: triangles.as_ref(),
+                },
+                hits: [None; PACKET],
+                best: super::packet::LaneKeys::NONE,
+                key_base: 0,
+            };
+            let all = packet.lanes;
+            intersect_packet_from(nodes, &mut packet, 0, all, &mut lanes);
+            for (a, h) in answers.iter_mut().zip(lanes.hits) {
+                *a = answer(h);
+            }
+        },
+    );
+}
+
+/// [`TriangleLanes`] for closest hits: each lane's closest hit so far.
+#[cfg(target_arch = "x86_64")]
+pub(crate) struct ClosestTriangleLanes<'a, 'r, W> {
+    pub lanes: TriangleLanes<'a, 'r, W>,
+    /// The lanes' new closest hits (each nearer, or as near with a smaller
+    /// key, than the lane's closest before).
+    pub hits: [Option<LeafHit>; super::packet::PACKET],
+    /// The keys of the lanes' closest hits, these and any before.
+    pub best: super::packet::LaneKeys,
+    /// The key of a hit here is `key_base | slot`.
+    pub key_base: u64,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl<W: LaneWrays> ClosestTriangleLanes<'_, '_, W> {
+    /// Record `hit` for `lane` when it replaces the lane's closest by the
+    /// single-ray rule ([`nearer`](super::triangle4::nearer)), shrinking
+    /// the lane's `t_max`.
+    #[inline(always)]
+    fn offer(&mut self, packet: &mut super::packet::Packet8, lane: usize, hit: LeafHit) {
+        let key = self.key_base | hit.3 as u64;
+        if self.best.wins(lane, hit.0, packet.lane_t_max(lane), key) {
+            packet.set_lane_t_max(lane, hit.0);
+            self.hits[lane] = Some(hit);
+            self.best.set(lane, key);
+        }
+    }
+
+    /// Leaf `(first, count)` for lane `lane` alone (the single-ray leaf
+    /// test from the lane's running closest).
+    #[inline(always)]
+    fn leaf_lane(
+        &mut self,
+        packet: &mut super::packet::Packet8,
+        lane: usize,
+        first: u32,
+        count: u32,
+    ) {
+        let l = &mut self.lanes;
+        let r = l.rays[lane];
+        // The leaf's own closest (ties by slot), then the lane's rule.
+        let mut t_max = packet.lane_t_max(lane);
+        let mut best = None;
+        intersect_blocks::<false>(
+            l.blocks,
+            l.wrays.wray(lane),
+            r.t_min,
+            first,
+            count,
+            &mut t_max,
+            &mut best,
+            true,
+        );
+        if let Some(h) = best {
+            self.offer(packet, lane, h);
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+impl<W: LaneWrays> super::packet::ClosestLanes for ClosestTriangleLanes<'_, '_, W> {
+    #[inline(always)]
+    fn leaf_packet(
+        &mut self,
+        packet: &mut super::packet::Packet8,
+        mask: u32,
+        first: u32,
+        count: u32,
+    ) {
+        use super::packet::PACKET_TRIANGLES_FROM;
+        match self.lanes.triangles {
+            Some(triangles) if mask.count_ones() >= PACKET_TRIANGLES_FROM => {
+                let (rays, wrays, hits) = (self.lanes.rays, &mut self.lanes.wrays, &mut self.hits);
+                triangles.closest_blocks(
+                    self.lanes.blocks,
+                    first,
+                    count,
+                    mask,
+                    packet,
+                    &mut self.best,
+                    self.key_base,
+                    |lane, h| hits[lane] = Some(h),
+                    |lane, b, j, t_max| {
+                        let [p0, p1, p2] = b.triangle(j);
+                        crate::triangle::intersect_triangle(
+                            wrays.wray(lane),
+                            p0,
+                            p1,
+                            p2,
+                            rays[lane].t_min,
+                            t_max,
+                        )
+                    },
+                );
+            }
+            _ => {
+                let mut m = mask;
+                while m != 0 {
+                    let lane = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    self.leaf_lane(packet, lane, first, count);
+                }
+            }
+        }
+    }
+
+    #[inline(always)]
+    fn alone(&mut self, packet: &mut super::packet::Packet8, lane: usize, node: u32) {
+        let l = &mut self.lanes;
+        let r = l.rays[lane];
+        let tester = l.testers[lane].get_or_insert_with(|| l.factory.make(r));
+        let hit = subtree_with::<8, false, _>(
+            l.nodes,
+            l.blocks,
+            tester,
+            l.wrays.wray(lane),
+            r.t_min,
+            node,
+            packet.lane_t_max(lane),
+            &mut TraversalCounters::default(),
+        );
+        if let Some(h) = hit {
+            self.offer(packet, lane, h);
+        }
+    }
+}
+
 /// The watertight rays of a packet's lanes.
 #[cfg(target_arch = "x86_64")]
 pub(crate) trait LaneWrays {

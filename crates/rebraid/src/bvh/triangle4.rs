@@ -65,6 +65,17 @@ const _: () = assert!(std::mem::align_of::<Triangle4>() == 16);
 /// slot.
 pub type LeafHit = (f32, f32, f32, u32);
 
+/// The closest-hit rule every kernel shares: a hit at `t` with key `k`
+/// (its leaf-order slot) replaces `best` when it is nearer, or exactly as
+/// near with a smaller key. Keying exact ties (a ray through the edge two
+/// triangles share) makes the answer independent of the order in which
+/// leaves are visited, so a ray traced in a packet, whose visit order is
+/// the packet's, answers as it does alone, triangle and all.
+#[inline(always)]
+pub fn nearer(t: f32, k: u32, best: &Option<LeafHit>) -> bool {
+    best.is_none_or(|h| t < h.0 || (t == h.0 && k < h.3))
+}
+
 /// The primitive id and the geometric normal, `(v1 - v0) x (v2 - v0)` at its
 /// length, of the block lane `lane_ref` (`4 * block + lane`, as the block
 /// kernels report hits): bit for bit what the leaf-order triangle gives, as
@@ -344,7 +355,7 @@ fn scalar_block<const ANY: bool>(
                 *best = Some((t, u, v, k));
                 return true;
             }
-            if best.is_none_or(|h| t < h.0) {
+            if nearer(t, k, best) {
                 *t_max = t;
                 *best = Some((t, u, v, k));
             }
@@ -390,7 +401,7 @@ fn take_lanes<const ANY: bool>(
             *best = Some((t, u, v, k));
             return true;
         }
-        if best.is_none_or(|h| t < h.0) {
+        if nearer(t, k, best) {
             *t_max = t;
             *best = Some((t, u, v, k));
         }

@@ -8,7 +8,7 @@ use rayon::prelude::*;
 
 use crate::bvh::triangle4::block_hit_record;
 use crate::bvh::{
-    BuildParams, Kernel, TraversalCounters, WideTriangleBvh, occluded_many, query_many,
+    BuildParams, Kernel, TraversalCounters, WideTriangleBvh, intersect_many, occluded_many,
     query_subtree,
 };
 use crate::{Error, Hit, MeshBvh, Ray, TriangleMesh};
@@ -121,7 +121,7 @@ impl FlatAccel {
     pub fn intersect_many(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
         match &self.wide {
             Some(w) if !self.bvh.bvh.nodes.is_empty() => {
-                query_many::<false, _>(&w.wide.nodes, &w.blocks, self.kernel, rays, out, |h| {
+                intersect_many(&w.wide.nodes, &w.blocks, self.kernel, rays, out, |h| {
                     h.map(|(t, u, v, k)| {
                         let (prim_id, normal) = block_hit_record(&w.blocks, k);
                         self.map_hit(Hit::on_mesh(t, u, v, prim_id, normal))

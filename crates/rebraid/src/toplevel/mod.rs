@@ -603,6 +603,22 @@ fn order_top_level(
 /// reference within its object (see [`ObjectBvh::hit_record`]), ref index).
 type RefHit = (f32, f32, f32, u32, u32);
 
+/// The closest-hit rule of the top level (see
+/// [`crate::bvh::triangle4::nearer`]): nearer, or exactly as near with a
+/// smaller (ref index, hit reference); each triangle has one such key, so
+/// ties go the same way in any visit order.
+#[inline(always)]
+fn nearer_ref(t: f32, ri: u32, k: u32, best: &Option<RefHit>) -> bool {
+    best.is_none_or(|b| t < b.0 || (t == b.0 && (ri, k) < (b.4, b.3)))
+}
+
+/// The [`RefHit`] key as one integer (ref index above, hit reference
+/// below), for the packet lanes' tie rule.
+#[inline(always)]
+fn ref_key(ri: u32, k: u32) -> u64 {
+    (ri as u64) << 32 | k as u64
+}
+
 /// The ref index of a [`RefHit`] in the top level's own copied blocks (the
 /// hit reference is then a lane of [`TopLevelAccel::blocks`]).
 const INLINE_HIT: u32 = u32::MAX;
@@ -665,7 +681,7 @@ impl<'r, T: BoxTester<8> + Copy> RayState<'r, T> {
     }
 
     /// Walk the top level from node `start` (whose box the ray entered)
-    /// with the ray's tester `world`.
+    /// with the ray's tester `world`, within the closest hit so far.
     #[inline(always)]
     fn walk_from<const ANY: bool, F: TesterFactory<Tester = T>>(
         &mut self,
@@ -676,11 +692,14 @@ impl<'r, T: BoxTester<8> + Copy> RayState<'r, T> {
         start: u32,
         counters: &mut TraversalCounters,
     ) {
+        // A lane of a closest-hit packet goes on alone from its closest
+        // hit so far (a fresh walk has none).
+        let t_max = self.best.map_or(self.ray.t_max, |b| b.0);
         traverse_with::<ANY, _, _>(
             nodes,
             world,
             start,
-            self.ray.t_max,
+            t_max,
             counters,
             #[inline(always)]
             |first, count, t_max| self.leaf::<ANY, F>(a, factory, world, first, count, t_max),
@@ -703,11 +722,10 @@ impl<'r, T: BoxTester<8> + Copy> RayState<'r, T> {
             let mut hit = None;
             let stop =
                 self.copied_blocks::<ANY>(a, first, count, t_max, &mut hit, T::SIMD_TRIANGLES);
-            // The entries' tie rule: an equal distance keeps the earlier
-            // hit (the blocks were tested against `t_max` inclusive, which
-            // equals the best hit's distance).
+            // The entries' rule (the blocks were tested against `t_max`
+            // inclusive, which equals the best hit's distance).
             if let Some((t, u, v, k)) = hit
-                && (ANY || self.best.is_none_or(|b: RefHit| t < b.0))
+                && (ANY || nearer_ref(t, INLINE_HIT, k, &self.best))
             {
                 self.best = Some((t, u, v, k, INLINE_HIT));
             }
@@ -719,7 +737,7 @@ impl<'r, T: BoxTester<8> + Copy> RayState<'r, T> {
                     self.best = Some((t, u, v, k, ri));
                     return true;
                 }
-                if self.best.is_none_or(|b: RefHit| t < b.0) {
+                if nearer_ref(t, ri, k, &self.best) {
                     *t_max = t;
                     self.best = Some((t, u, v, k, ri));
                 }
@@ -850,13 +868,14 @@ where
 /// Occlusion in packets through the top level (AVX2).
 #[cfg(target_arch = "x86_64")]
 mod packets {
-    use super::{RayState, TopLevelAccel};
+    use super::{INLINE_HIT, RayState, RefHit, TopLevelAccel};
     use crate::bvh::packet::{
-        PACKET, PACKET_TRIANGLES_FROM, Packet8, PacketLanes, SINGLE_BELOW, TrianglePacket,
-        leaf_by_lane, occluded_in_packets, occluded_packet, occluded_packet_from, scalar_triangle,
+        ClosestLanes, LaneKeys, PACKET, PACKET_TRIANGLES_FROM, Packet8, PacketLanes, SINGLE_BELOW,
+        TrianglePacket, in_coherent_packets, intersect_packet_from, leaf_by_lane,
+        occluded_in_packets, occluded_packet, occluded_packet_from, scalar_triangle,
     };
     use crate::bvh::simd::x86::Avx2Tester;
-    use crate::bvh::simd::{Avx2Factory, LaneWrays, TriangleLanes};
+    use crate::bvh::simd::{Avx2Factory, ClosestTriangleLanes, LaneWrays, TriangleLanes};
     use crate::bvh::wide::is_leaf_ref;
     use crate::bvh::{TesterFactory, TraversalCounters, WideNode};
     use crate::triangle::WatertightRay;
@@ -1015,6 +1034,233 @@ mod packets {
             );
             state.best.is_some()
         }
+    }
+
+    impl Lanes<'_> {
+        /// The keys of the lanes' closest hits (see
+        /// [`super::nearer_ref`]).
+        #[inline(always)]
+        fn lane_keys(&self) -> LaneKeys {
+            let mut keys = LaneKeys::NONE;
+            for (l, s) in self.states.iter().enumerate() {
+                if let Some(b) = s.best {
+                    keys.set(l, super::ref_key(b.4, b.3));
+                }
+            }
+            keys
+        }
+
+        /// Leaf `(first, count)` for lane `lane` alone: the single-ray
+        /// walk's leaf, from the lane's closest hit so far.
+        #[inline(always)]
+        fn closest_leaf_lane(&mut self, packet: &mut Packet8, lane: usize, first: u32, count: u32) {
+            let r = self.rays[lane];
+            let mut t_max = packet.lane_t_max(lane);
+            if first >= self.accel.block_base {
+                // Copied blocks need no box tester: not made for them.
+                let mut hit = None;
+                self.states[lane]
+                    .copied_blocks::<false>(self.accel, first, count, &mut t_max, &mut hit, true);
+                let state = &mut self.states[lane];
+                if let Some((t, u, v, k)) = hit
+                    && super::nearer_ref(t, INLINE_HIT, k, &state.best)
+                {
+                    state.best = Some((t, u, v, k, INLINE_HIT));
+                    packet.set_lane_t_max(lane, t);
+                }
+                return;
+            }
+            let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
+            self.states[lane].leaf::<false, _>(
+                self.accel,
+                self.factory,
+                world,
+                first,
+                count,
+                &mut t_max,
+            );
+            packet.set_lane_t_max(lane, t_max);
+        }
+    }
+
+    impl ClosestLanes for Lanes<'_> {
+        /// As [`PacketLanes::leaf_packet`] for occlusion: copied blocks
+        /// most of the packet reaches test one triangle for all its rays,
+        /// entries into objects placed directly take the packet on into the
+        /// object's tree, the rest go lane by lane; every lane keeps the
+        /// single-ray walk's rule (a hit replaces the closest only when
+        /// strictly nearer).
+        #[inline(always)]
+        fn leaf_packet(&mut self, packet: &mut Packet8, mask: u32, first: u32, count: u32) {
+            let a = self.accel;
+            if first >= a.block_base {
+                if mask.count_ones() >= PACKET_TRIANGLES_FROM
+                    && let Some(&triangles) = self.triangles()
+                {
+                    let mut keys = self.lane_keys();
+                    let mut hits = [None; PACKET];
+                    let (rays, states) = (self.rays, &mut self.states);
+                    triangles.closest_blocks(
+                        &a.blocks,
+                        first - a.block_base,
+                        count,
+                        mask,
+                        packet,
+                        &mut keys,
+                        super::ref_key(INLINE_HIT, 0),
+                        |lane, h| hits[lane] = Some(h),
+                        |lane, b, j, t_max| {
+                            let [p0, p1, p2] = b.triangle(j);
+                            crate::triangle::intersect_triangle(
+                                states[lane].wray(),
+                                p0,
+                                p1,
+                                p2,
+                                rays[lane].t_min,
+                                t_max,
+                            )
+                        },
+                    );
+                    for (state, h) in self.states.iter_mut().zip(hits) {
+                        if let Some((t, u, v, k)) = h {
+                            state.best = Some((t, u, v, k, INLINE_HIT));
+                        }
+                    }
+                    return;
+                }
+                let mut m = mask;
+                while m != 0 {
+                    let lane = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    self.closest_leaf_lane(packet, lane, first, count);
+                }
+                return;
+            }
+            for ri in first..first + count {
+                let e = &a.entries[ri as usize];
+                let Some(obj) = a.objects.get(e.object as usize).and_then(|o| o.as_deref()) else {
+                    continue;
+                };
+                if e.instance == INVALID_ID
+                    && mask.count_ones() >= SINGLE_BELOW
+                    && !is_leaf_ref(e.wide)
+                    && let Some(w) = &obj.wide
+                {
+                    let triangles = self.triangles().copied();
+                    let best = self.lane_keys();
+                    let mut sub = ClosestTriangleLanes {
+                        lanes: TriangleLanes {
+                            nodes: &w.wide.nodes,
+                            blocks: &w.blocks,
+                            factory: self.factory,
+                            rays: self.rays,
+                            testers: &mut self.worlds,
+                            wrays: &mut self.states,
+                            triangles: triangles.as_ref(),
+                        },
+                        hits: [None; PACKET],
+                        best,
+                        key_base: super::ref_key(ri, 0),
+                    };
+                    intersect_packet_from(&w.wide.nodes, packet, e.wide, mask, &mut sub);
+                    // Every hit recorded there replaces the lane's closest
+                    // before by the rule.
+                    let hits = sub.hits;
+                    for (state, h) in self.states.iter_mut().zip(hits) {
+                        if let Some((t, u, v, k)) = h {
+                            state.best = Some((t, u, v, k, ri));
+                        }
+                    }
+                    continue;
+                }
+                let mut m = mask;
+                while m != 0 {
+                    let lane = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    let r = self.rays[lane];
+                    let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
+                    let t_max = packet.lane_t_max(lane);
+                    let state = &mut self.states[lane];
+                    if let Some((t, u, v, k)) =
+                        state.entry::<false, _>(a, self.factory, world, ri, t_max)
+                        && super::nearer_ref(t, ri, k, &state.best)
+                    {
+                        state.best = Some((t, u, v, k, ri));
+                        packet.set_lane_t_max(lane, t);
+                    }
+                }
+            }
+        }
+
+        #[inline(always)]
+        fn alone(&mut self, packet: &mut Packet8, lane: usize, node: u32) {
+            let r = self.rays[lane];
+            let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
+            let state = &mut self.states[lane];
+            state.walk_from::<false, _>(
+                self.accel,
+                self.nodes,
+                self.factory,
+                world,
+                node,
+                &mut TraversalCounters::default(),
+            );
+            if let Some(b) = state.best {
+                packet.set_lane_t_max(lane, b.0);
+            }
+        }
+    }
+
+    /// See [`TopLevelAccel::intersect_many`]; `nodes` is the wide top
+    /// level. A target-feature function for the reason given at
+    /// [`occluded`].
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) fn intersect<O>(
+        accel: &TopLevelAccel,
+        nodes: &[WideNode<8>],
+        factory: &Avx2Factory,
+        rays: &[Ray],
+        out: &mut [O],
+        answer: &impl Fn(&TopLevelAccel, Option<RefHit>) -> O,
+    ) {
+        in_coherent_packets(
+            rays,
+            out,
+            |rays, out| {
+                for (o, ray) in out.iter_mut().zip(rays) {
+                    let hit = if ray.is_valid() {
+                        super::walk_ray::<false, _>(
+                            accel,
+                            ray,
+                            factory,
+                            &mut TraversalCounters::default(),
+                        )
+                    } else {
+                        None
+                    };
+                    *o = answer(accel, hit);
+                }
+            },
+            |rays, answers| {
+                // SAFETY: an `Avx2Factory` exists only where the CPU has
+                // AVX2 and FMA.
+                let mut packet = unsafe { Packet8::new(rays) };
+                let mut lanes = Lanes {
+                    accel,
+                    nodes,
+                    factory,
+                    rays,
+                    worlds: [None; PACKET],
+                    states: std::array::from_fn(|l| RayState::new(rays.get(l).unwrap_or(&rays[0]))),
+                    triangles: None,
+                };
+                let all = packet.lanes;
+                intersect_packet_from(nodes, &mut packet, 0, all, &mut lanes);
+                for (a, s) in answers.iter_mut().zip(&lanes.states) {
+                    *a = answer(accel, s.best);
+                }
+            },
+        );
     }
 
     /// See [`TopLevelAccel::occluded_many`]; `nodes` is the wide top level.
@@ -1201,15 +1447,35 @@ impl TopLevelAccel {
     }
 
     /// Closest hits of a run of rays on the calling thread, `out[i]`
-    /// answering `rays[i]` as [`TopLevelAccel::intersect`] does, with one
-    /// kernel dispatch for the whole run. Panics when the lengths differ.
+    /// answering `rays[i]` as [`TopLevelAccel::intersect`] does (exact ties
+    /// included: see `nearer_ref`), with one kernel dispatch for the whole
+    /// run. Panics when the lengths
+    /// differ.
+    ///
+    /// With the AVX2 kernel, runs of coherent rays (camera rays in pixel
+    /// order) go through the top level and into objects placed directly in
+    /// packets of up to eight ([`crate::bvh::packet::intersect_packet_from`]);
+    /// incoherent rays go alone.
     pub fn intersect_many(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
         assert_eq!(rays.len(), out.len(), "one output per ray");
+        let answer = |a: &TopLevelAccel, h: Option<RefHit>| h.map(|h| a.make_hit(h));
+        #[cfg(target_arch = "x86_64")]
+        if self.kernel == Kernel::Avx2
+            && let Some(wide) = &self.wide
+            && crate::bvh::simd::with_avx2(|f| {
+                // SAFETY: an `Avx2Factory` exists only where the CPU has
+                // AVX2 and FMA.
+                unsafe { packets::intersect(self, &wide.nodes, f, rays, out, &answer) }
+            })
+            .is_some()
+        {
+            return;
+        }
         let mut walk = BatchWalk::<false, _, _> {
             accel: self,
             rays,
             out,
-            answer: |a: &TopLevelAccel, h: Option<RefHit>| h.map(|h| a.make_hit(h)),
+            answer,
         };
         with_kernel(self.kernel, &mut walk);
     }
