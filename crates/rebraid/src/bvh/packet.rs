@@ -541,6 +541,21 @@ pub fn scalar_triangle(ray: &Ray, wray: &WatertightRay, block: &Triangle4, j: us
     crate::triangle::intersect_triangle(wray, p0, p1, p2, ray.t_min, ray.t_max).is_some()
 }
 
+/// The scalar watertight test of triangle `j` of `block` for one ray
+/// within `[ray.t_min, t_max]`, as `(t, u, v)`: the closest-hit form of
+/// [`scalar_triangle`].
+#[inline(always)]
+pub fn scalar_closest(
+    ray: &Ray,
+    wray: &WatertightRay,
+    block: &Triangle4,
+    j: usize,
+    t_max: f32,
+) -> Option<(f32, f32, f32)> {
+    let [p0, p1, p2] = block.triangle(j);
+    crate::triangle::intersect_triangle(wray, p0, p1, p2, ray.t_min, t_max)
+}
+
 /// What a packet traversal does with one lane's ray where the packet
 /// leaves off.
 pub trait PacketLanes {
@@ -1133,10 +1148,7 @@ mod tests {
                 &mut keys,
                 0,
                 |l, h| closest[l] = Some(h),
-                |l, b, j, t_max| {
-                    let [p0, p1, p2] = b.triangle(j);
-                    crate::triangle::intersect_triangle(&wrays[l], p0, p1, p2, rays[l].t_min, t_max)
-                },
+                |l, b, j, t_max| scalar_closest(&rays[l], &wrays[l], b, j, t_max),
             );
             for (l, r) in rays.iter().enumerate() {
                 let mut best = None;

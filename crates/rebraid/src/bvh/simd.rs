@@ -1136,6 +1136,33 @@ pub fn intersect_many<O>(
     query_many::<false, _>(nodes, blocks, kernel, rays, out, answer);
 }
 
+/// A packet's box-test constants, its lanes' watertight rays (unused lanes
+/// repeat the first ray; never read) and, when the rays share the axis
+/// permutation, its triangle-test constants.
+///
+/// # Safety
+/// AVX2 and FMA (see [`super::packet::Packet8::new`]).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn packet_constants(
+    rays: &[&Ray],
+) -> (
+    super::packet::Packet8,
+    [WatertightRay; super::packet::PACKET],
+    Option<super::packet::TrianglePacket>,
+) {
+    use super::packet::{Packet8, TrianglePacket};
+    // SAFETY: the caller's promise.
+    let packet = unsafe { Packet8::new(rays) };
+    let wrays = std::array::from_fn(|l| {
+        let r = rays.get(l).unwrap_or(&rays[0]);
+        WatertightRay::new(r.origin, r.dir)
+    });
+    // SAFETY: the caller's promise.
+    let triangles = unsafe { TrianglePacket::new(rays, |l| wrays[l]) };
+    (packet, wrays, triangles)
+}
+
 /// [`intersect_many`] in packets (a target-feature function, as
 /// [`occluded_packets_avx2`]).
 #[cfg(target_arch = "x86_64")]
@@ -1148,9 +1175,7 @@ fn intersect_packets_avx2<O>(
     out: &mut [O],
     answer: &impl Fn(Option<LeafHit>) -> O,
 ) {
-    use super::packet::{
-        PACKET, Packet8, TrianglePacket, in_coherent_packets, intersect_packet_from,
-    };
+    use super::packet::{PACKET, in_coherent_packets, intersect_packet_from};
     in_coherent_packets(
         rays,
         out,
@@ -1164,13 +1189,7 @@ fn intersect_packets_avx2<O>(
         },
         |rays, answers| {
             // SAFETY: this function runs only on CPUs with AVX2 and FMA.
-            let mut packet = unsafe { Packet8::new(rays) };
-            let wrays: [WatertightRay; PACKET] = std::array::from_fn(|l| {
-                let r = rays.get(l).unwrap_or(&rays[0]);
-                WatertightRay::new(r.origin, r.dir)
-            });
-            // SAFETY: as above.
-            let triangles = unsafe { TrianglePacket::new(rays, |l| wrays[l]) };
+            let (mut packet, wrays, triangles) = unsafe { packet_constants(rays) };
             let mut testers = [None; PACKET];
             let mut lanes = ClosestTriangleLanes {
                 lanes: TriangleLanes {
@@ -1278,15 +1297,7 @@ impl<W: LaneWrays> super::packet::ClosestLanes for ClosestTriangleLanes<'_, '_, 
                     self.key_base,
                     |lane, h| hits[lane] = Some(h),
                     |lane, b, j, t_max| {
-                        let [p0, p1, p2] = b.triangle(j);
-                        crate::triangle::intersect_triangle(
-                            wrays.wray(lane),
-                            p0,
-                            p1,
-                            p2,
-                            rays[lane].t_min,
-                            t_max,
-                        )
+                        super::packet::scalar_closest(rays[lane], wrays.wray(lane), b, j, t_max)
                     },
                 );
             }
@@ -1422,21 +1433,14 @@ fn occluded_packets_avx2(
     rays: &[Ray],
     out: &mut [bool],
 ) {
-    use super::packet::{PACKET, Packet8, TrianglePacket, occluded_in_packets, occluded_packet};
+    use super::packet::{PACKET, occluded_in_packets, occluded_packet};
     occluded_in_packets(
         rays,
         out,
         |ray| query_root::<true, _>(nodes, blocks, &factory.make(ray), ray).is_some(),
         |rays| {
             // SAFETY: this function runs only on CPUs with AVX2 and FMA.
-            let packet = unsafe { Packet8::new(rays) };
-            // Unused lanes repeat the first ray (never read).
-            let wrays: [WatertightRay; PACKET] = std::array::from_fn(|l| {
-                let r = rays.get(l).unwrap_or(&rays[0]);
-                WatertightRay::new(r.origin, r.dir)
-            });
-            // SAFETY: as above.
-            let triangles = unsafe { TrianglePacket::new(rays, |l| wrays[l]) };
+            let (packet, wrays, triangles) = unsafe { packet_constants(rays) };
             let mut testers = [None; PACKET];
             let mut lanes = TriangleLanes {
                 nodes,

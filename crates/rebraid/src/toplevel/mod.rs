@@ -865,17 +865,19 @@ where
     }
 }
 
-/// Occlusion in packets through the top level (AVX2).
+/// Occlusion and closest hits in packets through the top level (AVX2).
 #[cfg(target_arch = "x86_64")]
 mod packets {
     use super::{INLINE_HIT, RayState, RefHit, TopLevelAccel};
     use crate::bvh::packet::{
         ClosestLanes, LaneKeys, PACKET, PACKET_TRIANGLES_FROM, Packet8, PacketLanes, SINGLE_BELOW,
         TrianglePacket, in_coherent_packets, intersect_packet_from, leaf_by_lane,
-        occluded_in_packets, occluded_packet, occluded_packet_from, scalar_triangle,
+        occluded_in_packets, occluded_packet, occluded_packet_from, scalar_closest,
+        scalar_triangle,
     };
     use crate::bvh::simd::x86::Avx2Tester;
     use crate::bvh::simd::{Avx2Factory, ClosestTriangleLanes, LaneWrays, TriangleLanes};
+    use crate::bvh::triangle4::LeafHit;
     use crate::bvh::wide::is_leaf_ref;
     use crate::bvh::{TesterFactory, TraversalCounters, WideNode};
     use crate::triangle::WatertightRay;
@@ -1050,6 +1052,18 @@ mod packets {
             keys
         }
 
+        /// Make the lanes' new closest hits `hits` (each one replaces the
+        /// lane's closest before by the rule: see `ClosestTriangleLanes`)
+        /// their best, as hits through ref `ri`.
+        #[inline(always)]
+        fn take_hits(&mut self, hits: [Option<LeafHit>; PACKET], ri: u32) {
+            for (state, h) in self.states.iter_mut().zip(hits) {
+                if let Some((t, u, v, k)) = h {
+                    state.best = Some((t, u, v, k, ri));
+                }
+            }
+        }
+
         /// Leaf `(first, count)` for lane `lane` alone: the single-ray
         /// walk's leaf, from the lane's closest hit so far.
         #[inline(always)]
@@ -1110,22 +1124,10 @@ mod packets {
                         super::ref_key(INLINE_HIT, 0),
                         |lane, h| hits[lane] = Some(h),
                         |lane, b, j, t_max| {
-                            let [p0, p1, p2] = b.triangle(j);
-                            crate::triangle::intersect_triangle(
-                                states[lane].wray(),
-                                p0,
-                                p1,
-                                p2,
-                                rays[lane].t_min,
-                                t_max,
-                            )
+                            scalar_closest(rays[lane], states[lane].wray(), b, j, t_max)
                         },
                     );
-                    for (state, h) in self.states.iter_mut().zip(hits) {
-                        if let Some((t, u, v, k)) = h {
-                            state.best = Some((t, u, v, k, INLINE_HIT));
-                        }
-                    }
+                    self.take_hits(hits, INLINE_HIT);
                     return;
                 }
                 let mut m = mask;
@@ -1163,14 +1165,8 @@ mod packets {
                         key_base: super::ref_key(ri, 0),
                     };
                     intersect_packet_from(&w.wide.nodes, packet, e.wide, mask, &mut sub);
-                    // Every hit recorded there replaces the lane's closest
-                    // before by the rule.
                     let hits = sub.hits;
-                    for (state, h) in self.states.iter_mut().zip(hits) {
-                        if let Some((t, u, v, k)) = h {
-                            state.best = Some((t, u, v, k, ri));
-                        }
-                    }
+                    self.take_hits(hits, ri);
                     continue;
                 }
                 let mut m = mask;
