@@ -890,7 +890,13 @@ impl Scene {
         }
     }
 
-    /// Closest hits of many rays, in parallel.
+    /// Closest hits of many rays, in parallel: `out[i]` is what
+    /// [`Scene::intersect`] answers for `rays[i]`, exact ties included.
+    ///
+    /// With the AVX2 kernel, runs of neighbouring rays with close
+    /// directions (camera rays in pixel order) are traced in packets of
+    /// eight, which is faster; the answers do not depend on it. Panics when
+    /// the lengths differ.
     pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
         crate::ray::par_query_runs(rays, out, |rays, out| match &self.accel {
             Accel::Empty => out.fill(None),
@@ -899,7 +905,11 @@ impl Scene {
         });
     }
 
-    /// Occlusion of many rays, in parallel.
+    /// Occlusion of many rays, in parallel: `out[i]` is what
+    /// [`Scene::occluded`] answers for `rays[i]`. With the AVX2 kernel,
+    /// rays of one direction octant are traced in packets of eight
+    /// (coherent ones, such as shadow rays towards one light, gain most).
+    /// Panics when the lengths differ.
     pub fn occluded_batch(&self, rays: &[Ray], out: &mut [bool]) {
         crate::ray::par_query_runs(rays, out, |rays, out| match &self.accel {
             Accel::Empty => out.fill(false),
