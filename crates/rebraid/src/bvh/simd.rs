@@ -1138,29 +1138,31 @@ pub fn intersect_many<O>(
 
 /// A packet's box-test constants, its lanes' watertight rays (unused lanes
 /// repeat the first ray; never read) and, when the rays share the axis
-/// permutation, its triangle-test constants.
+/// permutation, its triangle-test constants; `None` when a ray is not
+/// [`super::packet::packetable`].
 ///
 /// # Safety
 /// AVX2 and FMA (see [`super::packet::Packet8::new`]).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
+#[allow(clippy::type_complexity)] // three parts of one packet, used together
 unsafe fn packet_constants(
     rays: &[&Ray],
-) -> (
+) -> Option<(
     super::packet::Packet8,
     [WatertightRay; super::packet::PACKET],
     Option<super::packet::TrianglePacket>,
-) {
+)> {
     use super::packet::{Packet8, TrianglePacket};
     // SAFETY: the caller's promise.
-    let packet = unsafe { Packet8::new(rays) };
+    let packet = unsafe { Packet8::try_new(rays) }?;
     let wrays = std::array::from_fn(|l| {
         let r = rays.get(l).unwrap_or(&rays[0]);
         WatertightRay::new(r.origin, r.dir)
     });
     // SAFETY: the caller's promise.
     let triangles = unsafe { TrianglePacket::new(rays, |l| wrays[l]) };
-    (packet, wrays, triangles)
+    Some((packet, wrays, triangles))
 }
 
 /// [`intersect_many`] in packets (a target-feature function, as
@@ -1189,7 +1191,9 @@ fn intersect_packets_avx2<O>(
         },
         |rays, answers| {
             // SAFETY: this function runs only on CPUs with AVX2 and FMA.
-            let (mut packet, wrays, triangles) = unsafe { packet_constants(rays) };
+            let Some((mut packet, wrays, triangles)) = (unsafe { packet_constants(rays) }) else {
+                return false;
+            };
             let mut testers = [None; PACKET];
             let mut lanes = ClosestTriangleLanes {
                 lanes: TriangleLanes {
@@ -1210,6 +1214,7 @@ fn intersect_packets_avx2<O>(
             for (a, h) in answers.iter_mut().zip(lanes.hits) {
                 *a = answer(h);
             }
+            true
         },
     );
 }
@@ -1439,8 +1444,10 @@ fn occluded_packets_avx2(
         out,
         |ray| query_root::<true, _>(nodes, blocks, &factory.make(ray), ray).is_some(),
         |rays| {
-            // SAFETY: this function runs only on CPUs with AVX2 and FMA.
-            let (packet, wrays, triangles) = unsafe { packet_constants(rays) };
+            // SAFETY: this function runs only on CPUs with AVX2 and FMA;
+            // the rays were grouped as packetable.
+            let (packet, wrays, triangles) = unsafe { packet_constants(rays) }
+                .expect("occlusion groups hold packetable rays only");
             let mut testers = [None; PACKET];
             let mut lanes = TriangleLanes {
                 nodes,

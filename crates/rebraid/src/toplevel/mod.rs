@@ -719,17 +719,7 @@ impl<'r, T: BoxTester<8> + Copy> RayState<'r, T> {
         t_max: &mut f32,
     ) -> bool {
         if first >= a.block_base {
-            let mut hit = None;
-            let stop =
-                self.copied_blocks::<ANY>(a, first, count, t_max, &mut hit, T::SIMD_TRIANGLES);
-            // The entries' rule (the blocks were tested against `t_max`
-            // inclusive, which equals the best hit's distance).
-            if let Some((t, u, v, k)) = hit
-                && (ANY || nearer_ref(t, INLINE_HIT, k, &self.best))
-            {
-                self.best = Some((t, u, v, k, INLINE_HIT));
-            }
-            return stop;
+            return self.copied_leaf::<ANY>(a, first, count, t_max, T::SIMD_TRIANGLES);
         }
         for ri in first..first + count {
             if let Some((t, u, v, k)) = self.entry::<ANY, F>(a, factory, world, ri, *t_max) {
@@ -744,6 +734,29 @@ impl<'r, T: BoxTester<8> + Copy> RayState<'r, T> {
             }
         }
         false
+    }
+
+    /// A top-level leaf of copied blocks (`first >= a.block_base`): its
+    /// hit becomes the best by the entries' rule (the blocks were tested
+    /// against `t_max` inclusive, which equals the best hit's distance).
+    /// Needs no box tester. Returns `true` to stop (any hit).
+    #[inline(always)]
+    fn copied_leaf<const ANY: bool>(
+        &mut self,
+        a: &TopLevelAccel,
+        first: u32,
+        count: u32,
+        t_max: &mut f32,
+        simd: bool,
+    ) -> bool {
+        let mut hit = None;
+        let stop = self.copied_blocks::<ANY>(a, first, count, t_max, &mut hit, simd);
+        if let Some((t, u, v, k)) = hit
+            && (ANY || nearer_ref(t, INLINE_HIT, k, &self.best))
+        {
+            self.best = Some((t, u, v, k, INLINE_HIT));
+        }
+        stop
     }
 
     /// A top-level leaf naming an object leaf's triangle blocks copied into
@@ -1072,27 +1085,18 @@ mod packets {
             let mut t_max = packet.lane_t_max(lane);
             if first >= self.accel.block_base {
                 // Copied blocks need no box tester: not made for them.
-                let mut hit = None;
-                self.states[lane]
-                    .copied_blocks::<false>(self.accel, first, count, &mut t_max, &mut hit, true);
-                let state = &mut self.states[lane];
-                if let Some((t, u, v, k)) = hit
-                    && super::nearer_ref(t, INLINE_HIT, k, &state.best)
-                {
-                    state.best = Some((t, u, v, k, INLINE_HIT));
-                    packet.set_lane_t_max(lane, t);
-                }
-                return;
+                self.states[lane].copied_leaf::<false>(self.accel, first, count, &mut t_max, true);
+            } else {
+                let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
+                self.states[lane].leaf::<false, _>(
+                    self.accel,
+                    self.factory,
+                    world,
+                    first,
+                    count,
+                    &mut t_max,
+                );
             }
-            let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
-            self.states[lane].leaf::<false, _>(
-                self.accel,
-                self.factory,
-                world,
-                first,
-                count,
-                &mut t_max,
-            );
             packet.set_lane_t_max(lane, t_max);
         }
     }
@@ -1102,8 +1106,8 @@ mod packets {
         /// most of the packet reaches test one triangle for all its rays,
         /// entries into objects placed directly take the packet on into the
         /// object's tree, the rest go lane by lane; every lane keeps the
-        /// single-ray walk's rule (a hit replaces the closest only when
-        /// strictly nearer).
+        /// single-ray walk's rule (`nearer_ref`: nearer, or as near with a
+        /// smaller key).
         #[inline(always)]
         fn leaf_packet(&mut self, packet: &mut Packet8, mask: u32, first: u32, count: u32) {
             let a = self.accel;
@@ -1240,7 +1244,9 @@ mod packets {
             |rays, answers| {
                 // SAFETY: an `Avx2Factory` exists only where the CPU has
                 // AVX2 and FMA.
-                let mut packet = unsafe { Packet8::new(rays) };
+                let Some(mut packet) = (unsafe { Packet8::try_new(rays) }) else {
+                    return false;
+                };
                 let mut lanes = Lanes {
                     accel,
                     nodes,
@@ -1255,6 +1261,7 @@ mod packets {
                 for (a, s) in answers.iter_mut().zip(&lanes.states) {
                     *a = answer(accel, s.best);
                 }
+                true
             },
         );
     }
