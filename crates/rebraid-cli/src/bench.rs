@@ -194,6 +194,29 @@ pub fn make_ray_sets(
     ))
 }
 
+/// Inner nodes and leaves visited per ray (top level and objects
+/// together), for the primary, shadow and diffuse sets, ray by ray through
+/// the scene's counted queries.
+pub fn visits_per_ray(scene: &Scene, sets: &RaySets) -> [(f64, f64); 3] {
+    let mut out = [(0.0, 0.0); 3];
+    for (k, rays) in [&sets.primary, &sets.shadow, &sets.diffuse]
+        .into_iter()
+        .enumerate()
+    {
+        let mut c = rebraid::bvh::TraversalCounters::default();
+        for ray in rays {
+            if k == 1 {
+                scene.occluded_counted(ray, &mut c);
+            } else {
+                scene.intersect_counted(ray, &mut c);
+            }
+        }
+        let n = rays.len().max(1) as f64;
+        out[k] = (c.inner_visited as f64 / n, c.leaves_visited as f64 / n);
+    }
+    out
+}
+
 /// Trace the three sets once; returns seconds per set and the answers.
 fn trace_sets(
     scene: &Scene,

@@ -277,6 +277,12 @@ struct StatsArgs {
     modes: String,
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Also trace `bench`'s primary, shadow and diffuse rays from a
+    /// WIDTHxHEIGHT image (e.g. `480x270`) and report each mode's inner
+    /// nodes and leaves visited per ray (top level and objects together):
+    /// where a mode's traversal time goes, independent of the machine.
+    #[arg(long, value_name = "WIDTHxHEIGHT")]
+    visits: Option<String>,
     #[command(flatten)]
     opts: SceneOpts,
 }
@@ -722,6 +728,19 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
             "mode", "build ms", "SAH", "MB", "top nodes", "top depth", "refs", "opened", "capacity"
         );
         let mut per_mode = Vec::new();
+        let sets = match &a.visits {
+            Some(size) => {
+                let (width, height) = parse_image_size(size)?;
+                let (_, bounds) = desc.world_boxes();
+                let (camera, up) = a.opts.camera(&bounds)?;
+                let params = a.opts.scene_params(modes[0])?;
+                Some(bench::make_ray_sets(
+                    &desc, &params, &camera, up, width, height,
+                )?)
+            }
+            None => None,
+        };
+        let mut visit_lines = Vec::new();
         for &mode in &modes {
             let mut scene = Scene::from_desc(&desc, a.opts.scene_params(mode)?)?;
             let rep = scene.commit()?;
@@ -739,6 +758,25 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
                 top.nodes_opened,
                 top.capacity
             );
+            let mut visits = serde_json::Value::Null;
+            if let Some(sets) = &sets {
+                let v = bench::visits_per_ray(&scene, sets);
+                visits = serde_json::json!({
+                    "primary": [v[0].0, v[0].1],
+                    "shadow": [v[1].0, v[1].1],
+                    "diffuse": [v[2].0, v[2].1],
+                });
+                visit_lines.push(format!(
+                    "  {:<10} {:>9.2} {:>8.2} {:>9.2} {:>8.2} {:>9.2} {:>8.2}",
+                    mode.name(),
+                    v[0].0,
+                    v[0].1,
+                    v[1].0,
+                    v[1].1,
+                    v[2].0,
+                    v[2].1
+                ));
+            }
             per_mode.push(serde_json::json!({
                 "mode": mode.name(),
                 "build_ms": rep.total_ms,
@@ -753,7 +791,18 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
                 "refs_opened": top.nodes_opened,
                 "ref_capacity": top.capacity,
                 "flat_depth": st.flat.as_ref().map(|f| f.max_depth),
+                "visits_per_ray": visits,
             }));
+        }
+        if !visit_lines.is_empty() {
+            println!("  visits per ray (inner nodes, leaves; top level and objects together):");
+            println!(
+                "  {:<10} {:>9} {:>8} {:>9} {:>8} {:>9} {:>8}",
+                "mode", "primary", "leaves", "shadow", "leaves", "diffuse", "leaves"
+            );
+            for l in &visit_lines {
+                println!("{l}");
+            }
         }
         let v = serde_json::json!({
             "scene": input.name(),
@@ -772,4 +821,15 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
         println!("wrote {}", p.display());
     }
     Ok(())
+}
+
+/// `WIDTHxHEIGHT`, both at least 1.
+fn parse_image_size(s: &str) -> anyhow::Result<(u32, u32)> {
+    let parsed = s
+        .split_once(['x', 'X'])
+        .and_then(|(w, h)| Some((w.trim().parse::<u32>().ok()?, h.trim().parse::<u32>().ok()?)));
+    match parsed {
+        Some((w, h)) if w > 0 && h > 0 => Ok((w, h)),
+        _ => bail!("expected an image size WIDTHxHEIGHT such as 480x270, got `{s}`"),
+    }
 }

@@ -555,6 +555,43 @@ fn stats_library_json() {
     assert!(modes[2]["refs_opened"].as_u64().unwrap() > 0, "{v}");
 }
 
+#[test]
+fn stats_visits_per_ray() {
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("s.json");
+    let out = ok(
+        dir.path(),
+        &[
+            "stats",
+            "library",
+            "--scale",
+            "0.02",
+            "--visits",
+            "48x27",
+            "--json",
+            s(&json),
+        ],
+    );
+    assert!(out.contains("visits per ray"), "{out}");
+    let v: Value = serde_json::from_str(std::fs::read_to_string(&json).unwrap().trim()).unwrap();
+    let modes = v["modes"].as_array().expect("modes array");
+    let visits = |i: usize, set: &str| -> (f64, f64) {
+        let p = &modes[i]["visits_per_ray"][set];
+        (p[0].as_f64().unwrap(), p[1].as_f64().unwrap())
+    };
+    for (i, m) in modes.iter().enumerate() {
+        for set in ["primary", "shadow", "diffuse"] {
+            let (inner, leaves) = visits(i, set);
+            assert!(inner >= 1.0 && leaves > 0.0, "{set}: {m}");
+        }
+    }
+    // The library's objects overlap: a two-level walk enters many more of
+    // them than the re-braided one, which opens the overlapping objects.
+    assert!(visits(1, "primary").0 > visits(2, "primary").0, "{v}");
+    let err = fails(dir.path(), &["stats", "library", "--visits", "48"]);
+    assert!(err.contains("WIDTHxHEIGHT"), "{err}");
+}
+
 /// A reader that stops early (`rebraid stats library | head -1`) ends the
 /// tool quietly: no panic about a broken pipe on stderr.
 #[cfg(unix)]
