@@ -1,6 +1,6 @@
 //! Rays and hit records.
 
-use glam::Vec3;
+use glam::{Vec3, Vec4};
 
 use crate::Error;
 
@@ -58,15 +58,19 @@ impl Ray {
     /// True when a query can hit anything with this ray (see the type's docs).
     #[inline]
     pub fn is_valid(&self) -> bool {
-        // Without short-circuits: every ray takes this test, and six
-        // branches per ray were a measurable share of a diffuse ray's
-        // instructions (callgrind). `t_min <= t_max` fails for a NaN in
-        // either; `t_max` may be infinite.
+        // In two four-lane vectors (the ray's two halves) and without
+        // short-circuits: every ray takes this test, and six branches per
+        // ray were a measurable share of a diffuse ray's instructions
+        // (callgrind); the lane-by-lane fold compiled to some forty
+        // instructions. `t_min <= t_max` fails for a NaN in either; `t_max`
+        // may be infinite.
         let w: [f32; 8] = bytemuck::cast(*self);
-        let finite = [w[0], w[1], w[2], w[4], w[5], w[6]]
-            .iter()
-            .fold(true, |ok, x| ok & x.is_finite());
-        let moving = (w[4] != 0.0) | (w[5] != 0.0) | (w[6] != 0.0);
+        let origin = Vec4::from_slice(&w[..4]);
+        let dir = Vec4::from_slice(&w[4..]);
+        let finite =
+            (origin.abs().cmplt(Vec4::INFINITY) & dir.abs().cmplt(Vec4::INFINITY)).bitmask() & 7
+                == 7;
+        let moving = dir.cmpne(Vec4::ZERO).bitmask() & 7 != 0;
         finite & moving & (self.t_min <= self.t_max)
     }
 

@@ -32,7 +32,7 @@
 
 use std::mem::MaybeUninit;
 
-use glam::Vec3;
+use glam::{Vec3, Vec3A};
 
 use super::triangle4::{
     LeafHit, Triangle4, block_boxes, block_hit_record, intersect_blocks, pack_triangle4,
@@ -159,16 +159,19 @@ pub struct FmaSlab {
 }
 
 impl FmaSlab {
+    /// In four-lane vectors: one division for the three axes and one sign
+    /// mask for the plane order ([`OCTANT_PLANES`]). Each lane's arithmetic
+    /// is the per-axis one, so the constants are the same bits.
     #[inline(always)]
     pub fn new(origin: Vec3, dir: Vec3) -> Self {
-        let inv_dir = Vec3::ONE / dir;
-        let (near_plane, far_plane) = plane_order(inv_dir);
-        let oi = origin * inv_dir;
+        let inv_dir = Vec3A::ONE / Vec3A::from(dir);
+        let (near_plane, far_plane) = OCTANT_PLANES[inv_dir.is_negative_bitmask() as usize & 7];
+        let oi = Vec3A::from(origin) * inv_dir;
         let pad = oi.abs() * (2.0 * f32::EPSILON);
         Self {
-            inv_dir,
-            near_offset: oi + pad,
-            far_offset: oi - pad,
+            inv_dir: inv_dir.into(),
+            near_offset: (oi + pad).into(),
+            far_offset: (oi - pad).into(),
             near_plane,
             far_plane,
         }
@@ -178,22 +181,57 @@ impl FmaSlab {
     /// such a ray needs the exact sub-and-multiply test with its NaN fix.
     #[inline(always)]
     pub fn is_finite(&self) -> bool {
-        self.inv_dir.is_finite() && self.near_offset.is_finite() && self.far_offset.is_finite()
+        // `0 * x` is zero for a finite `x`, NaN for an infinite or NaN
+        // one: one compare for the nine values.
+        let z = |v: Vec3| Vec3A::from(v) * 0.0;
+        (z(self.inv_dir) + z(self.near_offset) + z(self.far_offset))
+            .cmpeq(Vec3A::ZERO)
+            .all()
     }
 }
+
+/// For each direction octant (bit `a` set: `inv_dir[a]` negative, `-0.0`
+/// included), the index into [`WideNode::planes`] of each axis's near and
+/// far plane (Williams et al. 2005: the near plane of a negative axis is
+/// the box's maximum).
+const OCTANT_PLANES: [([usize; 3], [usize; 3]); 8] = {
+    let mut t = [([0; 3], [0; 3]); 8];
+    let mut m = 0;
+    while m < 8 {
+        let mut a = 0;
+        while a < 3 {
+            let negative = m >> a & 1 == 1;
+            t[m].0[a] = if negative { a + 3 } else { a };
+            t[m].1[a] = if negative { a } else { a + 3 };
+            a += 1;
+        }
+        m += 1;
+    }
+    t
+};
+
+/// [`OCTANT_PLANES`] as byte offsets of the planes in an 8-wide node
+/// (32 bytes each): what the AVX2 tester adds to a node's address.
+const OCTANT_PLANE_BYTES: [([usize; 3], [usize; 3]); 8] = {
+    let mut t = [([0; 3], [0; 3]); 8];
+    let mut m = 0;
+    while m < 8 {
+        let mut a = 0;
+        while a < 3 {
+            t[m].0[a] = OCTANT_PLANES[m].0[a] * 32;
+            t[m].1[a] = OCTANT_PLANES[m].1[a] * 32;
+            a += 1;
+        }
+        m += 1;
+    }
+    t
+};
 
 /// Per-ray plane selection of the SIMD testers: the index into
 /// [`WideNode::planes`] of each axis's near and far plane.
 #[inline(always)]
 fn plane_order(inv_dir: Vec3) -> ([usize; 3], [usize; 3]) {
-    let mut near = [0, 1, 2];
-    let mut far = [3, 4, 5];
-    for a in 0..3 {
-        if inv_dir[a].is_sign_negative() {
-            std::mem::swap(&mut near[a], &mut far[a]);
-        }
-    }
-    (near, far)
+    OCTANT_PLANES[Vec3A::from(inv_dir).is_negative_bitmask() as usize & 7]
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -202,7 +240,7 @@ pub(crate) mod x86 {
 
     use super::{BoxTester, FmaSlab, ROBUST_FAR, plane_order};
     use crate::bvh::wide::WideNode;
-    use glam::Vec3;
+    use glam::{Vec3, Vec3A};
 
     /// Four lanes per step; any `W` that is a multiple of 4.
     #[derive(Clone, Copy)]
@@ -286,15 +324,17 @@ pub(crate) mod x86 {
     #[derive(Clone, Copy)]
     pub(crate) struct Avx2Tester {
         inv_dir: [__m256; 3],
-        /// `origin * inv_dir` plus (near) or minus (far) a bound on its
-        /// rounding error, per axis: the one-FMA distances
-        /// `fma(plane, inv_dir, -offset)` then never exceed (near) or fall
-        /// short of (far) the exact ones beyond what `ROBUST_FAR` covers.
-        /// On the exact path (`exact`), the ray's origin instead: the
+        /// Minus `origin * inv_dir` minus (near) or plus (far) a bound on
+        /// its rounding error, per axis: the one-FMA distances
+        /// `fma(plane, inv_dir, neg_offset)` then never exceed (near) or
+        /// fall short of (far) the exact ones beyond what `ROBUST_FAR`
+        /// covers. Stored negated: kept positive, LLVM stored both signs
+        /// (a negation and a broadcast more per axis and ray). On the
+        /// exact path (`exact`), minus the ray's origin instead: the
         /// tester is copied per instance entry, and three fewer vectors
         /// are three fewer broadcasts and stores per ray.
-        near_offset: [__m256; 3],
-        far_offset: [__m256; 3],
+        neg_near_offset: [__m256; 3],
+        neg_far_offset: [__m256; 3],
         /// Byte offset in [`WideNode`] of each axis's near and far plane
         /// (`plane_order`'s index times 32, so below 192: inside the six
         /// planes). Stored premultiplied: callgrind showed the index loaded
@@ -324,12 +364,14 @@ pub(crate) mod x86 {
                 ]
             };
             let exact = !slab.is_finite();
+            let (near, far) = super::OCTANT_PLANE_BYTES
+                [Vec3A::from(slab.inv_dir).is_negative_bitmask() as usize & 7];
             Self {
                 inv_dir: splat(slab.inv_dir),
-                near_offset: splat(if exact { origin } else { slab.near_offset }),
-                far_offset: splat(slab.far_offset),
-                near: slab.near_plane.map(|i| i * 32),
-                far: slab.far_plane.map(|i| i * 32),
+                neg_near_offset: splat(-if exact { origin } else { slab.near_offset }),
+                neg_far_offset: splat(-slab.far_offset),
+                near,
+                far,
                 t_min: bytemuck::cast([t_min; 8]),
                 exact,
             }
@@ -358,13 +400,16 @@ pub(crate) mod x86 {
                 let mut near = self.t_min;
                 let mut far = _mm256_set1_ps(t_max);
                 if self.exact {
-                    // `near_offset` holds the origin on this path.
-                    let origin = &self.near_offset;
+                    // `neg_near_offset` holds minus the origin on this
+                    // path: `p + (-o)` is `p - o`, bit for bit.
+                    let neg_origin = &self.neg_near_offset;
                     for a in 0..3 {
                         let pn = plane(self.near[a]);
                         let pf = plane(self.far[a]);
-                        let mut tn = _mm256_mul_ps(_mm256_sub_ps(pn, origin[a]), self.inv_dir[a]);
-                        let mut tf = _mm256_mul_ps(_mm256_sub_ps(pf, origin[a]), self.inv_dir[a]);
+                        let mut tn =
+                            _mm256_mul_ps(_mm256_add_ps(pn, neg_origin[a]), self.inv_dir[a]);
+                        let mut tf =
+                            _mm256_mul_ps(_mm256_add_ps(pf, neg_origin[a]), self.inv_dir[a]);
                         let nan = _mm256_cmp_ps::<_CMP_UNORD_Q>(tn, tf);
                         tn = _mm256_blendv_ps(tn, _mm256_set1_ps(f32::NEG_INFINITY), nan);
                         tf = _mm256_blendv_ps(tf, _mm256_set1_ps(f32::INFINITY), nan);
@@ -375,8 +420,8 @@ pub(crate) mod x86 {
                     for a in 0..3 {
                         let pn = plane(self.near[a]);
                         let pf = plane(self.far[a]);
-                        let tn = _mm256_fmsub_ps(pn, self.inv_dir[a], self.near_offset[a]);
-                        let tf = _mm256_fmsub_ps(pf, self.inv_dir[a], self.far_offset[a]);
+                        let tn = _mm256_fmadd_ps(pn, self.inv_dir[a], self.neg_near_offset[a]);
+                        let tf = _mm256_fmadd_ps(pf, self.inv_dir[a], self.neg_far_offset[a]);
                         near = _mm256_max_ps(near, tn);
                         far = _mm256_min_ps(far, tf);
                     }
@@ -1470,6 +1515,44 @@ mod tests {
 
     use super::*;
     use crate::Aabb;
+
+    /// The four-lane slab constants are the per-axis scalar ones, bit for
+    /// bit, and the octant table picks each axis's near plane by the sign
+    /// of `inv_dir` (`-0.0` directions included).
+    #[test]
+    fn slab_constants_match_the_per_axis_arithmetic() {
+        let mut rng = Pcg64::seed_from_u64(3);
+        let special = [0.0, -0.0, 1.0, -1.0, 1e-30, -1e30, f32::MIN_POSITIVE];
+        for i in 0..20_000 {
+            let mut v = || {
+                if i % 3 == 0 {
+                    special[rng.gen_range(0..special.len())]
+                } else {
+                    rng.gen_range(-100.0f32..100.0) * 10f32.powi(rng.gen_range(-6..6))
+                }
+            };
+            let (origin, dir) = (Vec3::new(v(), v(), v()), Vec3::new(v(), v(), v()));
+            let s = FmaSlab::new(origin, dir);
+            for a in 0..3 {
+                let inv = 1.0 / dir[a];
+                let oi = origin[a] * inv;
+                let pad = oi.abs() * (2.0 * f32::EPSILON);
+                assert_eq!(s.inv_dir[a].to_bits(), inv.to_bits());
+                assert_eq!(s.near_offset[a].to_bits(), (oi + pad).to_bits());
+                assert_eq!(s.far_offset[a].to_bits(), (oi - pad).to_bits());
+                let (near, far) = if inv.is_sign_negative() {
+                    (a + 3, a)
+                } else {
+                    (a, a + 3)
+                };
+                assert_eq!((s.near_plane[a], s.far_plane[a]), (near, far), "{dir}");
+            }
+            let finite = [s.inv_dir, s.near_offset, s.far_offset]
+                .iter()
+                .all(|v| v.is_finite());
+            assert_eq!(s.is_finite(), finite, "{origin} {dir}");
+        }
+    }
 
     /// The FMA box test of the AVX2 kernel is conservative: it enters every
     /// box the exact test (`hit_node`, the SSE and scalar kernels) enters,
