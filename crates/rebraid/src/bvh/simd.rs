@@ -194,38 +194,28 @@ impl FmaSlab {
 /// included), the index into [`WideNode::planes`] of each axis's near and
 /// far plane (Williams et al. 2005: the near plane of a negative axis is
 /// the box's maximum).
-const OCTANT_PLANES: [([usize; 3], [usize; 3]); 8] = {
+const OCTANT_PLANES: [([usize; 3], [usize; 3]); 8] = octant_planes(1);
+
+/// [`OCTANT_PLANES`] as byte offsets of the planes in an 8-wide node
+/// (32 bytes each): what the AVX2 tester adds to a node's address.
+const OCTANT_PLANE_BYTES: [([usize; 3], [usize; 3]); 8] = octant_planes(32);
+
+/// The octant table with plane indices times `scale`.
+const fn octant_planes(scale: usize) -> [([usize; 3], [usize; 3]); 8] {
     let mut t = [([0; 3], [0; 3]); 8];
     let mut m = 0;
     while m < 8 {
         let mut a = 0;
         while a < 3 {
             let negative = m >> a & 1 == 1;
-            t[m].0[a] = if negative { a + 3 } else { a };
-            t[m].1[a] = if negative { a } else { a + 3 };
+            t[m].0[a] = scale * if negative { a + 3 } else { a };
+            t[m].1[a] = scale * if negative { a } else { a + 3 };
             a += 1;
         }
         m += 1;
     }
     t
-};
-
-/// [`OCTANT_PLANES`] as byte offsets of the planes in an 8-wide node
-/// (32 bytes each): what the AVX2 tester adds to a node's address.
-const OCTANT_PLANE_BYTES: [([usize; 3], [usize; 3]); 8] = {
-    let mut t = [([0; 3], [0; 3]); 8];
-    let mut m = 0;
-    while m < 8 {
-        let mut a = 0;
-        while a < 3 {
-            t[m].0[a] = OCTANT_PLANES[m].0[a] * 32;
-            t[m].1[a] = OCTANT_PLANES[m].1[a] * 32;
-            a += 1;
-        }
-        m += 1;
-    }
-    t
-};
+}
 
 /// Per-ray plane selection of the SIMD testers: the index into
 /// [`WideNode::planes`] of each axis's near and far plane.
