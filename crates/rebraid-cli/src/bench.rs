@@ -203,16 +203,20 @@ pub fn visits_per_ray(scene: &Scene, sets: &RaySets) -> [(f64, f64); 3] {
         .into_iter()
         .enumerate()
     {
-        let mut c = rebraid::bvh::TraversalCounters::default();
+        // Summed in `u64` ray by ray: the counters are `u32`.
+        let (mut inner, mut leaves) = (0u64, 0u64);
         for ray in rays {
+            let mut c = rebraid::bvh::TraversalCounters::default();
             if k == 1 {
                 scene.occluded_counted(ray, &mut c);
             } else {
                 scene.intersect_counted(ray, &mut c);
             }
+            inner += u64::from(c.inner_visited);
+            leaves += u64::from(c.leaves_visited);
         }
         let n = rays.len().max(1) as f64;
-        out[k] = (c.inner_visited as f64 / n, c.leaves_visited as f64 / n);
+        out[k] = (inner as f64 / n, leaves as f64 / n);
     }
     out
 }
