@@ -1075,6 +1075,9 @@ mod tests {
                 assert_eq!(lanes(p.t_max)[l], r.t_max.to_bits());
             }
             assert_eq!(p.lanes, (1u32 << n) - 1);
+            let first = FmaSlab::new(rays[0].origin, rays[0].dir);
+            assert_eq!(p.near, first.near_plane.map(|i| i * 32));
+            assert_eq!(p.far, first.far_plane.map(|i| i * 32));
         }
         assert!(refused > 100, "the refusals were exercised: {refused}");
     }

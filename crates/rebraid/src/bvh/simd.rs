@@ -165,7 +165,7 @@ impl FmaSlab {
     #[inline(always)]
     pub fn new(origin: Vec3, dir: Vec3) -> Self {
         let inv_dir = Vec3A::ONE / Vec3A::from(dir);
-        let (near_plane, far_plane) = OCTANT_PLANES[inv_dir.is_negative_bitmask() as usize & 7];
+        let (near_plane, far_plane) = OCTANT_PLANES[octant(inv_dir)];
         let oi = Vec3A::from(origin) * inv_dir;
         let pad = oi.abs() * (2.0 * f32::EPSILON);
         Self {
@@ -200,6 +200,13 @@ const OCTANT_PLANES: [([usize; 3], [usize; 3]); 8] = octant_planes(1);
 /// (32 bytes each): what the AVX2 tester adds to a node's address.
 const OCTANT_PLANE_BYTES: [([usize; 3], [usize; 3]); 8] = octant_planes(32);
 
+/// The row of the octant tables for a ray with these reciprocal direction
+/// components: bit `a` is the sign bit of `inv_dir[a]`.
+#[inline(always)]
+fn octant(inv_dir: Vec3A) -> usize {
+    inv_dir.is_negative_bitmask() as usize & 7
+}
+
 /// The octant table with plane indices times `scale`.
 const fn octant_planes(scale: usize) -> [([usize; 3], [usize; 3]); 8] {
     let mut t = [([0; 3], [0; 3]); 8];
@@ -221,7 +228,7 @@ const fn octant_planes(scale: usize) -> [([usize; 3], [usize; 3]); 8] {
 /// [`WideNode::planes`] of each axis's near and far plane.
 #[inline(always)]
 fn plane_order(inv_dir: Vec3) -> ([usize; 3], [usize; 3]) {
-    OCTANT_PLANES[Vec3A::from(inv_dir).is_negative_bitmask() as usize & 7]
+    OCTANT_PLANES[octant(inv_dir.into())]
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -230,7 +237,7 @@ pub(crate) mod x86 {
 
     use super::{BoxTester, FmaSlab, ROBUST_FAR, plane_order};
     use crate::bvh::wide::WideNode;
-    use glam::{Vec3, Vec3A};
+    use glam::Vec3;
 
     /// Four lanes per step; any `W` that is a multiple of 4.
     #[derive(Clone, Copy)]
@@ -354,8 +361,7 @@ pub(crate) mod x86 {
                 ]
             };
             let exact = !slab.is_finite();
-            let (near, far) = super::OCTANT_PLANE_BYTES
-                [Vec3A::from(slab.inv_dir).is_negative_bitmask() as usize & 7];
+            let (near, far) = super::OCTANT_PLANE_BYTES[super::octant(slab.inv_dir.into())];
             Self {
                 inv_dir: splat(slab.inv_dir),
                 neg_near_offset: splat(-if exact { origin } else { slab.near_offset }),

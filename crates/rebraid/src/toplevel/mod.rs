@@ -1022,16 +1022,7 @@ mod packets {
                     true,
                 );
             }
-            let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
-            let mut t_max = r.t_max;
-            self.states[lane].leaf::<true, _>(
-                self.accel,
-                self.factory,
-                world,
-                first,
-                count,
-                &mut t_max,
-            )
+            self.entries_leaf::<true>(lane, first, count, &mut r.t_max.clone())
         }
 
         #[inline(always)]
@@ -1052,6 +1043,23 @@ mod packets {
     }
 
     impl Lanes<'_> {
+        /// The entries of top-level leaf `(first, count)` for lane `lane`
+        /// alone, within `t_max` ([`RayState::leaf`], with the lane's world
+        /// tester made on first use): the occlusion and closest-hit lanes'
+        /// one path into the objects.
+        #[inline(always)]
+        fn entries_leaf<const ANY: bool>(
+            &mut self,
+            lane: usize,
+            first: u32,
+            count: u32,
+            t_max: &mut f32,
+        ) -> bool {
+            let r = self.rays[lane];
+            let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
+            self.states[lane].leaf::<ANY, _>(self.accel, self.factory, world, first, count, t_max)
+        }
+
         /// The keys of the lanes' closest hits (see
         /// [`super::nearer_ref`]).
         #[inline(always)]
@@ -1081,21 +1089,12 @@ mod packets {
         /// walk's leaf, from the lane's closest hit so far.
         #[inline(always)]
         fn closest_leaf_lane(&mut self, packet: &mut Packet8, lane: usize, first: u32, count: u32) {
-            let r = self.rays[lane];
             let mut t_max = packet.lane_t_max(lane);
             if first >= self.accel.block_base {
                 // Copied blocks need no box tester: not made for them.
                 self.states[lane].copied_leaf::<false>(self.accel, first, count, &mut t_max, true);
             } else {
-                let world = self.worlds[lane].get_or_insert_with(|| self.factory.make(r));
-                self.states[lane].leaf::<false, _>(
-                    self.accel,
-                    self.factory,
-                    world,
-                    first,
-                    count,
-                    &mut t_max,
-                );
+                self.entries_leaf::<false>(lane, first, count, &mut t_max);
             }
             packet.set_lane_t_max(lane, t_max);
         }
