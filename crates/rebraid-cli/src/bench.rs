@@ -5,7 +5,11 @@
 //! the median of `reps` repetitions, and the repetitions alternate between
 //! modes (mode A, mode B, mode C, A, B, C, ...) so that drifts of the machine
 //! hit every mode alike; ratios between modes of one run are what to quote.
-//! Each thread count runs inside its own rayon pool.
+//! Each thread count runs inside its own rayon pool. Beside Embree
+//! (`--embree`) every (mode, threads) row, ours and Embree's, runs in a
+//! fresh worker process that builds once untimed and then times, so that
+//! neither side's builds run in a process the other's did not. The memory
+//! the answers go into is made before the clock starts.
 
 use std::time::Instant;
 
@@ -141,6 +145,10 @@ pub struct BenchConfig {
     pub width: u32,
     pub height: u32,
     pub params: SceneParams,
+    /// Build each mode once, untimed, before its timed builds: what a
+    /// worker process does (see `rebraid bench --embree`), whose first
+    /// build would otherwise pay for the process's fresh memory.
+    pub warmup: bool,
 }
 
 /// The median of a non-empty list.
@@ -233,10 +241,17 @@ fn trace_sets(
         .into_iter()
         .enumerate()
     {
-        let t = Instant::now();
+        // The answers' memory is made (and faulted in) before the clock
+        // starts: a worker process traces once, into fresh pages.
         if k == 1 {
             occ.clear();
             occ.resize(rays.len(), false);
+        } else {
+            hits.clear();
+            hits.resize(rays.len(), None);
+        }
+        let t = Instant::now();
+        if k == 1 {
             scene.occluded_batch(rays, occ);
             out[k] = (
                 t.elapsed().as_secs_f64(),
@@ -244,8 +259,6 @@ fn trace_sets(
                 0.0,
             );
         } else {
-            hits.clear();
-            hits.resize(rays.len(), None);
             scene.intersect_batch(rays, hits);
             let secs = t.elapsed().as_secs_f64();
             let (n, s) = summarize_hits(hits);
@@ -272,6 +285,17 @@ pub fn bench_scene(
             let m = cfg.modes.len();
             let mut builds: Vec<Vec<(f64, f64, f64)>> = vec![Vec::new(); m];
             let mut scenes: Vec<Option<Scene>> = (0..m).map(|_| None).collect();
+            if cfg.warmup {
+                for &mode in &cfg.modes {
+                    progress(&format!(
+                        "{name}: warm-up build {} ({threads} thr)",
+                        mode.name()
+                    ));
+                    let mut params = cfg.params.clone();
+                    params.mode = mode;
+                    Scene::from_desc(desc, params)?.commit()?;
+                }
+            }
             for rep in 0..cfg.reps {
                 for (i, &mode) in cfg.modes.iter().enumerate() {
                     progress(&format!(

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::{Context, bail};
-use clap::{Args, Parser, Subcommand};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 use rebraid::{AccelMode, RefBudget, Scene, SceneParams};
 use rebraid_cli::animate;
 use rebraid_cli::bench::{self, BenchConfig, BenchRow, CycleStat, EmbreeApi, EmbreeIsa};
@@ -39,6 +39,10 @@ enum Command {
     /// Internal: trace stored rays through Embree in its own process.
     #[command(hide = true)]
     EmbreeWorker(EmbreeWorkerArgs),
+    /// Internal: build and trace stored rays in one of our modes in its own
+    /// process (`bench --embree`, so that ours run as Embree's do).
+    #[command(hide = true)]
+    BenchWorker(BenchWorkerArgs),
 }
 
 /// Options every command shares: how to read scenes and place the camera.
@@ -154,6 +158,45 @@ impl SceneOpts {
         Ok(p)
     }
 
+    /// These options as arguments of a worker process, which must load,
+    /// place the camera and build exactly as this process does.
+    fn worker_args(&self) -> Vec<String> {
+        let name = |v: Option<clap::builder::PossibleValue>| {
+            v.expect("no skipped variants").get_name().to_string()
+        };
+        let mut v = vec![
+            format!("--scale={}", self.scale),
+            format!("--seed={}", self.seed),
+            format!("--split={}", name(self.split.to_possible_value())),
+            format!("--up={}", name(self.up.to_possible_value())),
+        ];
+        let flags = [
+            ("--flatten-instances", self.flatten_instances),
+            ("--no-open-instances", self.no_open_instances),
+            ("--open-only-overlapping", self.open_only_overlapping),
+            ("--no-bake-instances", self.no_bake_instances),
+        ];
+        v.extend(flags.iter().filter(|f| f.1).map(|f| f.0.to_string()));
+        let values = [
+            ("camera", self.camera.clone()),
+            ("threshold", self.threshold.map(|x| x.to_string())),
+            ("budget-per-ref", self.budget_per_ref.map(|x| x.to_string())),
+            (
+                "budget-per-prim",
+                self.budget_per_prim.map(|x| x.to_string()),
+            ),
+            ("budget-min", self.budget_min.map(|x| x.to_string())),
+            ("open-rounds", self.open_rounds.map(|x| x.to_string())),
+            ("max-leaf", self.max_leaf.map(|x| x.to_string())),
+        ];
+        v.extend(
+            values
+                .into_iter()
+                .filter_map(|(k, x)| x.map(|x| format!("--{k}={x}"))),
+        );
+        v
+    }
+
     fn input(&self, arg: &str) -> anyhow::Result<SceneInput> {
         SceneInput::parse(arg, self.scale, self.seed)
     }
@@ -246,7 +289,9 @@ struct BenchArgs {
     /// Write one JSON object per (scene, mode, threads) to this file.
     #[arg(long)]
     json: Option<PathBuf>,
-    /// Add Embree 3 rows (embree-flat, embree-two-level), each traced in its own process.
+    /// Add Embree 3 rows (embree-flat, embree-two-level). Every row, ours
+    /// and Embree's, is then built and traced in its own worker process,
+    /// which builds once untimed before it times.
     #[arg(long)]
     embree: bool,
     /// With `--embree`: the highest instruction set Embree may use,
@@ -369,6 +414,21 @@ struct EmbreeWorkerArgs {
     opts: SceneOpts,
 }
 
+#[derive(Args, Debug)]
+struct BenchWorkerArgs {
+    scene: String,
+    #[arg(long)]
+    rays: PathBuf,
+    #[arg(long)]
+    mode: String,
+    #[arg(long)]
+    threads: usize,
+    #[arg(long)]
+    reps: usize,
+    #[command(flatten)]
+    opts: SceneOpts,
+}
+
 fn main() -> ExitCode {
     // A closed stdout (`rebraid stats ... | head -1`) ends the process
     // quietly, as it does any Unix filter: Rust ignores SIGPIPE, so every
@@ -387,6 +447,7 @@ fn main() -> ExitCode {
         Some(Command::Stats(a)) => run_stats(a),
         Some(Command::Animate(a)) => run_animate(a),
         Some(Command::EmbreeWorker(a)) => run_embree_worker(a),
+        Some(Command::BenchWorker(a)) => run_bench_worker(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -532,6 +593,7 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
             width: a.width,
             height: a.height,
             params,
+            warmup: false,
         };
         let ray_dir = a.embree.then(|| -> anyhow::Result<_> {
             let dir = tempfile_dir()?;
@@ -546,10 +608,18 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
             } else {
                 String::new()
             };
-            let mut cycle_rows = bench::bench_scene(&name, &desc, &sets, &camera, &cfg, |msg| {
-                eprint!("\r\x1b[2K{msg}{tag}")
-            })?;
-            eprint!("\r\x1b[2K");
+            let mut cycle_rows = match &ray_dir {
+                // Beside Embree, our modes run as its workers do: each in a
+                // fresh process that builds once untimed, then is timed.
+                Some(dir) => our_rows(input, &a, &dir.join("rays.bin"), &cfg, &tag)?,
+                None => {
+                    let rows = bench::bench_scene(&name, &desc, &sets, &camera, &cfg, |msg| {
+                        eprint!("\r\x1b[2K{msg}{tag}")
+                    })?;
+                    eprint!("\r\x1b[2K");
+                    rows
+                }
+            };
             if let Some(dir) = &ray_dir {
                 cycle_rows.extend(embree_rows(
                     input,
@@ -633,12 +703,6 @@ fn embree_rows(
     reps: usize,
     tag: &str,
 ) -> anyhow::Result<Vec<BenchRow>> {
-    let exe = std::env::current_exe()?;
-    let scene_arg = match input {
-        SceneInput::Library { .. } => "library".to_string(),
-        SceneInput::Grid { .. } => "grid".to_string(),
-        SceneInput::File(p) => p.display().to_string(),
-    };
     let mut rows = Vec::new();
     for &t in threads {
         for (isa, api, mode) in embree_variants(a)
@@ -649,32 +713,11 @@ fn embree_rows(
                 "\r\x1b[2K{}: {name} ({t} thr) in a worker process{tag}",
                 input.name(),
             );
-            let mut cmd = std::process::Command::new(&exe);
-            cmd.args(["embree-worker", &scene_arg, "--mode", mode])
-                .arg("--rays")
-                .arg(rays)
-                .args(["--threads", &t.to_string(), "--reps", &reps.to_string()])
+            let mut cmd = worker_command("embree-worker", input, rays, t, reps, a)?;
+            cmd.args(["--mode", mode])
                 .args(["--max-isa", isa.arg()])
-                .args(["--api", api.arg()])
-                .args([
-                    "--scale",
-                    &a.opts.scale.to_string(),
-                    "--seed",
-                    &a.opts.seed.to_string(),
-                ]);
-            if a.opts.flatten_instances {
-                cmd.arg("--flatten-instances");
-            }
-            cmd.args(["--split", &format!("{:?}", a.opts.split).to_lowercase()]);
-            let out = cmd.output().context("running the Embree worker")?;
-            if !out.status.success() {
-                bail!(
-                    "Embree worker failed: {}",
-                    String::from_utf8_lossy(&out.stderr).trim()
-                );
-            }
-            let mut row: BenchRow =
-                serde_json::from_slice(&out.stdout).context("reading the Embree worker's row")?;
+                .args(["--api", api.arg()]);
+            let mut row = worker_row(cmd, "Embree worker")?;
             row.scene = input.name();
             row.mode = name;
             rows.push(row);
@@ -682,6 +725,109 @@ fn embree_rows(
     }
     eprint!("\r\x1b[2K");
     Ok(rows)
+}
+
+/// This program as a worker process (`embree-worker` or `bench-worker`)
+/// over `input` and the stored `rays`, with `threads` threads, `reps`
+/// repetitions, and the scene options of `a`.
+fn worker_command(
+    worker: &str,
+    input: &SceneInput,
+    rays: &std::path::Path,
+    threads: usize,
+    reps: usize,
+    a: &BenchArgs,
+) -> anyhow::Result<std::process::Command> {
+    let scene_arg = match input {
+        SceneInput::Library { .. } => "library".to_string(),
+        SceneInput::Grid { .. } => "grid".to_string(),
+        SceneInput::File(p) => p.display().to_string(),
+    };
+    let mut cmd = std::process::Command::new(std::env::current_exe()?);
+    cmd.args([worker, &scene_arg])
+        .arg("--rays")
+        .arg(rays)
+        .args([
+            "--threads",
+            &threads.to_string(),
+            "--reps",
+            &reps.to_string(),
+        ])
+        .args(a.opts.worker_args());
+    Ok(cmd)
+}
+
+/// Run a worker process and read the row it prints.
+fn worker_row(mut cmd: std::process::Command, what: &str) -> anyhow::Result<BenchRow> {
+    let out = cmd
+        .output()
+        .with_context(|| format!("running the {what}"))?;
+    if !out.status.success() {
+        bail!(
+            "{what} failed: {}",
+            String::from_utf8_lossy(&out.stderr).trim()
+        );
+    }
+    serde_json::from_slice(&out.stdout).with_context(|| format!("reading the {what}'s row"))
+}
+
+/// Our rows of one cycle beside Embree's, each (threads, mode) built and
+/// traced by a worker process as Embree's are (see [`embree_rows`]): a
+/// fresh process, one untimed build, then `cfg.reps` timed ones. Run in
+/// this long-lived process instead, our builds were up to 1.3x slower than
+/// alone (nexuiz, re-braided, one thread: 51.9 ms against 40.0-41.7 ms;
+/// `docs/performance.md`, session 12) while Embree's ran fresh.
+fn our_rows(
+    input: &SceneInput,
+    a: &BenchArgs,
+    rays: &std::path::Path,
+    cfg: &BenchConfig,
+    tag: &str,
+) -> anyhow::Result<Vec<BenchRow>> {
+    let mut rows = Vec::new();
+    for &t in &cfg.threads {
+        for mode in &cfg.modes {
+            eprint!(
+                "\r\x1b[2K{}: {} ({t} thr) in a worker process{tag}",
+                input.name(),
+                mode.name()
+            );
+            let mut cmd = worker_command("bench-worker", input, rays, t, cfg.reps, a)?;
+            cmd.args(["--mode", mode.name()]);
+            let mut row = worker_row(cmd, "bench worker")?;
+            row.scene = input.name();
+            rows.push(row);
+        }
+    }
+    eprint!("\r\x1b[2K");
+    Ok(rows)
+}
+
+/// The `bench-worker` process: one mode of ours over the stored rays, as
+/// `bench` measures it, with one untimed build first; prints the row.
+fn run_bench_worker(a: BenchWorkerArgs) -> anyhow::Result<()> {
+    let mode: AccelMode = a.mode.parse()?;
+    let input = a.opts.input(&a.scene)?;
+    let (desc, _) = input.load(&a.opts.load_options())?;
+    let (_, bounds) = desc.world_boxes();
+    let (camera, _) = a.opts.camera(&bounds)?;
+    let sets = bench::read_rays(&a.rays)?;
+    let cfg = BenchConfig {
+        modes: vec![mode],
+        threads: vec![a.threads],
+        reps: a.reps,
+        width: 0,
+        height: 0,
+        params: a.opts.scene_params(mode)?,
+        warmup: true,
+    };
+    let rows = bench::bench_scene(&input.name(), &desc, &sets, &camera, &cfg, |_| {})?;
+    let row = rows
+        .into_iter()
+        .next()
+        .context("the bench worker made no row")?;
+    println!("{}", serde_json::to_string(&row)?);
+    Ok(())
 }
 
 #[cfg(feature = "embree")]
@@ -831,5 +977,52 @@ fn parse_image_size(s: &str) -> anyhow::Result<(u32, u32)> {
     match parsed {
         Some((w, h)) if w > 0 && h > 0 => Ok((w, h)),
         _ => bail!("expected an image size WIDTHxHEIGHT such as 480x270, got `{s}`"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Parser, Debug)]
+    struct OptsOnly {
+        #[command(flatten)]
+        opts: SceneOpts,
+    }
+
+    fn parse(args: &[String]) -> SceneOpts {
+        OptsOnly::parse_from(std::iter::once("t".to_string()).chain(args.iter().cloned())).opts
+    }
+
+    /// A worker process gets every scene option this process was given:
+    /// the options parsed back from `worker_args` are the same, for the
+    /// defaults and for every option set (a negative scale and a camera
+    /// starting with `-` included).
+    #[test]
+    fn worker_args_carry_every_scene_option() {
+        let given: Vec<String> = [
+            "--scale=-0.5",
+            "--seed=7",
+            "--split=material",
+            "--flatten-instances",
+            "--camera=-1,2,3,0,0,0,45",
+            "--up=z",
+            "--threshold=0.2",
+            "--budget-per-ref=3",
+            "--budget-per-prim=0.05",
+            "--budget-min=500",
+            "--no-open-instances",
+            "--open-only-overlapping",
+            "--open-rounds=2",
+            "--no-bake-instances",
+            "--max-leaf=4",
+        ]
+        .map(String::from)
+        .to_vec();
+        for args in [Vec::new(), given] {
+            let opts = parse(&args);
+            let again = parse(&opts.worker_args());
+            assert_eq!(format!("{again:?}"), format!("{opts:?}"));
+        }
     }
 }

@@ -671,29 +671,30 @@ fn bad_arguments_exit_with_one_error_line() {
 fn embree_rows_agree_with_ours() {
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("embree.json");
+    let args = [
+        "bench",
+        "library",
+        "--scale",
+        "0.02",
+        "--reps",
+        "1",
+        "--threads",
+        "1",
+        "--width",
+        "64",
+        "--height",
+        "36",
+        "--camera",
+        AISLE,
+        // Not the default: the worker processes must be given it.
+        "--max-leaf",
+        "4",
+        "--json",
+    ];
+    let with_embree = ["--embree", "--embree-api", "single,stream"];
     let out = ok(
         dir.path(),
-        &[
-            "bench",
-            "library",
-            "--scale",
-            "0.02",
-            "--embree",
-            "--embree-api",
-            "single,stream",
-            "--reps",
-            "1",
-            "--threads",
-            "1",
-            "--width",
-            "64",
-            "--height",
-            "36",
-            "--camera",
-            AISLE,
-            "--json",
-            s(&json),
-        ],
+        &[&args[..], &[s(&json)], &with_embree[..]].concat(),
     );
     assert!(out.contains("embree-flat"), "{out}");
     assert!(out.contains("rebraided / embree-two-level-stream"), "{out}");
@@ -709,4 +710,15 @@ fn embree_rows_agree_with_ours() {
         check_row_keys(row(&rows, m, 1), 64 * 36);
     }
     check_agreement(&rows, row(&rows, "flat", 1), 1e-4);
+    // With Embree our modes run in worker processes: the same trees as in
+    // this process (the scene options reached them).
+    let alone = dir.path().join("alone.json");
+    ok(dir.path(), &[&args[..], &[s(&alone)]].concat());
+    let alone = read_rows(&alone);
+    for m in MODES {
+        let (a, b) = (row(&rows, m, 1), row(&alone, m, 1));
+        for key in ["sah_cost", "bytes", "refs_opened", "triangles"] {
+            assert_eq!(a[key], b[key], "{m} {key}");
+        }
+    }
 }
