@@ -25,10 +25,11 @@ valgrind --tool=callgrind --trace-children=yes --branch-sim=yes --cache-sim=yes 
     --toggle-collect='rtcOccluded1' --callgrind-out-file="$d/cg.%p" \
     "$bin" bench "$scene" --modes flat --sets "$set" --threads 1 --reps 1 --width 240 --height 135 \
     --embree --embree-isa avx2 --json "$d/flat.json" "$@" >/dev/null 2>&1
-# One output per process, named by pid: the Embree workers' name their mode, ours is `flat`.
+# One output per process, named by pid: every row runs in a worker process whose command line
+# names its mode (`bench --embree` traces ours in workers too); the parent traces nothing.
 for f in "$d"/cg.*; do
-    mode=$(grep -m1 -o -- '--mode embree-[a-z-]*' "$f" | cut -d' ' -f2 || true)
-    mv "$f" "$d/${mode:-flat}.cg"
+    mode=$(grep -m1 -o -- '--mode [a-z-]*' "$f" | cut -d' ' -f2 || true)
+    if [ -n "$mode" ]; then mv "$f" "$d/$mode.cg"; else rm "$f"; fi
 done
 valgrind --tool=callgrind --branch-sim=yes --cache-sim=yes \
     --I1=32768,8,64 --D1=32768,8,64 --LL=1048576,8,64 --collect-atstart=no \
