@@ -491,18 +491,24 @@ fn distinct_object_prims(refs: &[BuildRef], src: &RefSources) -> u64 {
     prims
 }
 
+/// The bounds of a list's refs and of their centres, folded in four-lane
+/// vectors ([`BinBox`]): with the scalar `Aabb`
+/// operations this was 16% of the top-level build's instructions
+/// (callgrind, nexuiz). Same values: minima, maxima and centres are exact.
 fn list_bounds(list: &[BuildRef], parallel: bool) -> (Aabb, Aabb) {
-    let fold = |(b, c): (Aabb, Aabb), r: &BuildRef| (b.union(r.bounds), c.grow(r.bounds.center()));
-    if parallel {
+    let empty = (BinBox::EMPTY, BinBox::EMPTY);
+    let fold = |(b, c): (BinBox, BinBox), r: &BuildRef| {
+        let rb = BinBox::from_aabb(&r.bounds);
+        (b.union(rb), c.grow(rb.center()))
+    };
+    let (b, c) = if parallel {
         list.par_chunks(CHUNK)
-            .map(|ch| ch.iter().fold((Aabb::EMPTY, Aabb::EMPTY), fold))
-            .reduce(
-                || (Aabb::EMPTY, Aabb::EMPTY),
-                |(a, b), (c, d)| (a.union(c), b.union(d)),
-            )
+            .map(|ch| ch.iter().fold(empty, fold))
+            .reduce(|| empty, |(a, b), (c, d)| (a.union(c), b.union(d)))
     } else {
-        list.iter().fold((Aabb::EMPTY, Aabb::EMPTY), fold)
-    }
+        list.iter().fold(empty, fold)
+    };
+    (b.to_aabb(), c.to_aabb())
 }
 
 /// Does this list still benefit from opening? (The paper's termination rules.)
