@@ -214,13 +214,31 @@ pub struct SplitCandidate {
 }
 
 impl<const N: usize> Bins<N> {
+    /// Add a primitive (its box, centroid and weight) to its bin on each
+    /// axis. Panics when `map` has no bins or more than `N`.
     #[inline(always)]
     pub fn add(&mut self, map: &BinMapping, bounds: &BinBox, centroid: Vec3A, weight: u64) {
+        // Checked once per call, which the binning loops hoist out (the
+        // mapping does not change inside them); the three indices below
+        // then need no checks of their own (three compares and branches
+        // per primitive in the hottest loop of a build).
+        assert!(
+            (1..=N).contains(&map.bins),
+            "{} bins for a capacity of {N}",
+            map.bins
+        );
         let b = map.bins3(centroid);
         for (axis, &bin) in b.iter().enumerate() {
-            let slot = &mut self.bounds[axis][bin];
-            *slot = slot.union(*bounds);
-            self.weight[axis][bin] += weight;
+            debug_assert!(bin < map.bins);
+            // SAFETY: `bins3` clamps every index to `0..=map.bins - 1`,
+            // whatever the centroid (NaN included: the clamp's `max` yields
+            // its second operand, 0), and `map.bins <= N` was asserted
+            // above; `axis < 3`.
+            unsafe {
+                let slot = self.bounds.get_unchecked_mut(axis).get_unchecked_mut(bin);
+                *slot = slot.union(*bounds);
+                *self.weight.get_unchecked_mut(axis).get_unchecked_mut(bin) += weight;
+            }
         }
     }
 
@@ -503,6 +521,37 @@ mod tests {
                 assert_eq!(got.map(|g| (g.5, g.6)), want.map(|w| (w.5, w.6)));
             }
         }
+    }
+
+    /// `add` indexes its bins unchecked: any centroid (NaN, infinite, far
+    /// outside the mapping) lands in a bin of the mapping, for every bin
+    /// count up to the capacity; more bins than the capacity panic.
+    #[test]
+    fn add_keeps_every_centroid_inside_the_bins() {
+        let cb = Aabb::new(Vec3::ZERO, Vec3::new(1.0, 2.0, 0.0));
+        let b = BinBox::from_aabb(&cb);
+        let odd = [
+            Vec3A::NAN,
+            Vec3A::INFINITY,
+            Vec3A::NEG_INFINITY,
+            Vec3A::new(1e30, -1e30, 0.5),
+            Vec3A::new(0.5, 1.0, f32::NAN),
+            Vec3A::splat(1.0),
+        ];
+        for bins in 1..=8 {
+            let map = BinMapping::new(&cb, bins);
+            let mut all = Bins::<8>::default();
+            for &c in &odd {
+                all.add(&map, &b, c, 1);
+            }
+            for axis in 0..3 {
+                let inside: u64 = all.weight[axis][..bins].iter().sum();
+                assert_eq!(inside, odd.len() as u64, "{bins} bins, axis {axis}");
+            }
+        }
+        let map = BinMapping::new(&cb, 16);
+        let r = std::panic::catch_unwind(|| Bins::<8>::default().add(&map, &b, Vec3A::ZERO, 1));
+        assert!(r.is_err(), "16 bins in a capacity of 8 must panic");
     }
 
     #[test]
