@@ -49,6 +49,7 @@
 
 use std::sync::atomic::{AtomicU64, Ordering};
 
+use glam::Vec3A;
 use rayon::prelude::*;
 
 use super::{InstanceXf, ObjectBvh, TopRef};
@@ -267,8 +268,10 @@ impl BuildRef {
     #[inline]
     fn weight(&self) -> u64 {
         // `+ 0.5` and truncation: `round` is a libm call on baseline x86-64
-        // (no SSE4.1), once per ref per binning pass.
-        ((self.cost * 16.0 + 0.5) as u64).max(1)
+        // (no SSE4.1), once per ref per binning pass. Through `i64`: one
+        // instruction, where `f32 as u64` is a branchy sequence (the same
+        // value below 2^63; costs are far smaller).
+        ((self.cost * 16.0 + 0.5) as i64).max(1) as u64
     }
 }
 
@@ -942,9 +945,23 @@ fn build_list(
         }
     }
     let nl = match split {
-        Some((map, s)) => partition_refs(&mut list[..n], &mut scratch[..n], parallel, |r| {
-            map.bin(r.bounds.center().into(), s.axis) < s.bin
-        }),
+        // `goes_left` is `bin(..) < s.bin` by one float compare (the
+        // saturating float-to-integer cast of `bin` is a branchy sequence).
+        Some((map, s)) => {
+            let centre = |r: &BuildRef| -> Vec3A { r.bounds.center().into() };
+            let (list, scratch) = (&mut list[..n], &mut scratch[..n]);
+            match s.axis {
+                0 => partition_refs(list, scratch, parallel, |r| {
+                    map.goes_left::<0>(centre(r), s.bin)
+                }),
+                1 => partition_refs(list, scratch, parallel, |r| {
+                    map.goes_left::<1>(centre(r), s.bin)
+                }),
+                _ => partition_refs(list, scratch, parallel, |r| {
+                    map.goes_left::<2>(centre(r), s.bin)
+                }),
+            }
+        }
         None => {
             let mid = n / 2;
             if cbounds.extent().max_element() > 0.0 {
