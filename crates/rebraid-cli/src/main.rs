@@ -395,25 +395,9 @@ fn run_animate(a: AnimateArgs) -> anyhow::Result<()> {
     animate::run(&cfg).map(|_| ())
 }
 
-#[derive(Args, Debug)]
-struct EmbreeWorkerArgs {
-    scene: String,
-    #[arg(long)]
-    rays: PathBuf,
-    #[arg(long)]
-    mode: String,
-    #[arg(long)]
-    threads: usize,
-    #[arg(long)]
-    reps: usize,
-    #[arg(long, value_enum, default_value = "auto")]
-    max_isa: EmbreeIsa,
-    #[arg(long, value_enum, default_value = "single")]
-    api: EmbreeApi,
-    #[command(flatten)]
-    opts: SceneOpts,
-}
-
+/// What every worker process of `bench --embree` is given (see
+/// `worker_command`): the scene, the stored rays, the row's mode, threads
+/// and repetitions, and the scene options.
 #[derive(Args, Debug)]
 struct BenchWorkerArgs {
     scene: String,
@@ -427,6 +411,16 @@ struct BenchWorkerArgs {
     reps: usize,
     #[command(flatten)]
     opts: SceneOpts,
+}
+
+#[derive(Args, Debug)]
+struct EmbreeWorkerArgs {
+    #[command(flatten)]
+    worker: BenchWorkerArgs,
+    #[arg(long, value_enum, default_value = "auto")]
+    max_isa: EmbreeIsa,
+    #[arg(long, value_enum, default_value = "single")]
+    api: EmbreeApi,
 }
 
 fn main() -> ExitCode {
@@ -832,13 +826,14 @@ fn run_bench_worker(a: BenchWorkerArgs) -> anyhow::Result<()> {
 
 #[cfg(feature = "embree")]
 fn run_embree_worker(a: EmbreeWorkerArgs) -> anyhow::Result<()> {
+    let w = &a.worker;
     let row = rebraid_cli::embree_bench::run_worker(
-        &a.opts.input(&a.scene)?,
-        &a.opts.load_options(),
-        &a.rays,
-        &a.mode,
-        a.threads,
-        a.reps,
+        &w.opts.input(&w.scene)?,
+        &w.opts.load_options(),
+        &w.rays,
+        &w.mode,
+        w.threads,
+        w.reps,
         (a.max_isa, a.api),
     )?;
     println!("{}", serde_json::to_string(&row)?);
