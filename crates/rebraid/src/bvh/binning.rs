@@ -75,18 +75,30 @@ impl BinMapping {
         // Clamped in floats (exact: `bins - 1` is an integer), so the
         // conversion needs no saturation: one `cvttps2dq` on x86-64.
         let last = (self.bins - 1) as f32;
-        let b = ((c - self.origin) * self.scale)
-            .max(Vec3A::ZERO)
-            .min(Vec3A::splat(last));
+        let x = (c - self.origin) * self.scale;
         #[cfg(target_arch = "x86_64")]
         {
-            use std::arch::x86_64::{__m128, _mm_cvttps_epi32};
-            // SAFETY: SSE2 is part of the x86-64 baseline.
-            let i: [i32; 4] = bytemuck::cast(unsafe { _mm_cvttps_epi32(__m128::from(b)) });
+            use std::arch::x86_64::{
+                __m128, _mm_cvttps_epi32, _mm_max_ps, _mm_min_ps, _mm_set1_ps, _mm_setzero_ps,
+            };
+            // SAFETY: SSE2 is part of the x86-64 baseline. `maxps` returns
+            // its second operand when either is NaN, so a NaN coordinate
+            // becomes 0 here, and every lane ends in `0..=last`: the bins
+            // index unchecked on that (`Bins::add`).
+            let i: [i32; 4] = bytemuck::cast(unsafe {
+                let clamped = _mm_min_ps(
+                    _mm_max_ps(__m128::from(x), _mm_setzero_ps()),
+                    _mm_set1_ps(last),
+                );
+                _mm_cvttps_epi32(clamped)
+            });
             [i[0] as usize, i[1] as usize, i[2] as usize]
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
+            // `f32::max` and `min` return the number when one side is NaN,
+            // and `as usize` saturates: every index ends in `0..=last`.
+            let b = x.max(Vec3A::ZERO).min(Vec3A::splat(last));
             [b.x as usize, b.y as usize, b.z as usize]
         }
     }
@@ -231,9 +243,8 @@ impl<const N: usize> Bins<N> {
         for (axis, &bin) in b.iter().enumerate() {
             debug_assert!(bin < map.bins);
             // SAFETY: `bins3` clamps every index to `0..=map.bins - 1`,
-            // whatever the centroid (NaN included: the clamp's `max` yields
-            // its second operand, 0), and `map.bins <= N` was asserted
-            // above; `axis < 3`.
+            // whatever the centroid (NaN included, see there), and
+            // `map.bins <= N` was asserted above; `axis < 3`.
             unsafe {
                 let slot = self.bounds.get_unchecked_mut(axis).get_unchecked_mut(bin);
                 *slot = slot.union(*bounds);

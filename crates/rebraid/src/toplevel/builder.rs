@@ -982,9 +982,8 @@ fn build_list(
     let spare = list.len() - n;
     let left_spare = (spare as u64 * nl as u64 / n as u64) as usize;
     // Only when the right side moves: the root's opening rounds usually
-    // spend the whole budget, and a copy onto itself still moved every
-    // right-side ref at every level (7% of library's top-level build's
-    // instructions in `memmove`).
+    // spend the whole budget, below which the copy would be onto itself
+    // (a `memmove` of every right-side ref at every level, for nothing).
     if left_spare > 0 {
         list.copy_within(nl..n, nl + left_spare);
     }
