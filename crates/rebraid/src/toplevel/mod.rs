@@ -626,9 +626,10 @@ const INLINE_HIT: u32 = u32::MAX;
 /// Prepared instance rays kept per ray (see `RayWalk`).
 const INSTANCE_CACHE: usize = 4;
 
-/// An instance's id and the ray in its space, prepared for its box, triangle
-/// and SIMD box tests.
-type InstanceRay<T> = (u32, Ray, WatertightRay, T);
+/// An instance's id and the ray in its space, prepared for its box and
+/// triangle tests, with its SIMD box tester (made when an entry into one of
+/// the instance's wide nodes first needs it).
+type InstanceRay<T> = (u32, Ray, WatertightRay, Option<T>);
 
 /// One ray through the top level and into the object BVHs, inside a SIMD
 /// kernel's context (see [`with_kernel`]): testers are made for the world
@@ -816,11 +817,18 @@ impl<'r, T: BoxTester<8> + Copy> RayState<'r, T> {
             let slot = &mut self.cached[r.instance as usize % INSTANCE_CACHE];
             if slot.as_ref().is_none_or(|c| c.0 != r.instance) {
                 let (lr, lw) = a.instances[r.instance as usize].local_ray(ray);
-                let lt = factory.make(&lr);
-                *slot = Some((r.instance, lr, lw, lt));
+                *slot = Some((r.instance, lr, lw, None));
             }
-            let (_, lr, lw, lt) = slot.as_ref().expect("set just above");
-            obj.query_entry::<ANY, _>(r.wide, r.node, lr, lw, lt, t_max, &mut self.inner)
+            let (_, lr, lw, lt) = slot.as_mut().expect("set just above");
+            // The box tester only for an entry into a wide node: a leaf's
+            // blocks (and the binary fallback) never use it, and most
+            // instanced entries of a re-braided top level are leaves.
+            let tester = if is_leaf_ref(r.wide) {
+                world
+            } else {
+                &*lt.get_or_insert_with(|| factory.make(lr))
+            };
+            obj.query_entry::<ANY, _>(r.wide, r.node, lr, lw, tester, t_max, &mut self.inner)
         }
     }
 
