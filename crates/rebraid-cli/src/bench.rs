@@ -246,12 +246,7 @@ fn trace_sets(
         if k == 1 {
             occ.clear();
             occ.resize(rays.len(), false);
-        } else {
-            hits.clear();
-            hits.resize(rays.len(), None);
-        }
-        let t = Instant::now();
-        if k == 1 {
+            let t = Instant::now();
             scene.occluded_batch(rays, occ);
             out[k] = (
                 t.elapsed().as_secs_f64(),
@@ -259,6 +254,9 @@ fn trace_sets(
                 0.0,
             );
         } else {
+            hits.clear();
+            hits.resize(rays.len(), None);
+            let t = Instant::now();
             scene.intersect_batch(rays, hits);
             let secs = t.elapsed().as_secs_f64();
             let (n, s) = summarize_hits(hits);

@@ -298,15 +298,19 @@ impl<const N: usize> Bins<N> {
             map.axis_usable(2),
             false,
         );
-        let mut right_cost = [Vec4::ZERO; N];
-        let (mut b, mut w) = ([BinBox::EMPTY; 3], [0u64; 3]);
-        for i in (1..n).rev() {
+        // One side's cost per lane after adding bin `i` to it.
+        let grow = |b: &mut [BinBox; 3], w: &mut [u64; 3], i: usize| {
             for a in 0..3 {
                 b[a] = b[a].union(self.bounds[a][i]);
                 w[a] += self.weight[a][i];
             }
-            let k = blocks3(&w);
-            right_cost[i] = Vec4::select(k.cmpeq(Vec4::ZERO), Vec4::INFINITY, half_areas3(&b) * k);
+            let k = blocks3(w);
+            Vec4::select(k.cmpeq(Vec4::ZERO), Vec4::INFINITY, half_areas3(b) * k)
+        };
+        let mut right_cost = [Vec4::ZERO; N];
+        let (mut b, mut w) = ([BinBox::EMPTY; 3], [0u64; 3]);
+        for i in (1..n).rev() {
+            right_cost[i] = grow(&mut b, &mut w, i);
         }
         // Per lane, the first bin of least cost; then the lane of least
         // cost, the lower axis on ties: the scalar sweep's choice (axis by
@@ -314,13 +318,7 @@ impl<const N: usize> Bins<N> {
         let (mut best, mut best_bin) = (Vec4::INFINITY, [0usize; 3]);
         let (mut b, mut w) = ([BinBox::EMPTY; 3], [0u64; 3]);
         for (i, right) in right_cost.iter().enumerate().take(n).skip(1) {
-            for a in 0..3 {
-                b[a] = b[a].union(self.bounds[a][i - 1]);
-                w[a] += self.weight[a][i - 1];
-            }
-            let k = blocks3(&w);
-            let left = Vec4::select(k.cmpeq(Vec4::ZERO), Vec4::INFINITY, half_areas3(&b) * k);
-            let cost = left + *right;
+            let cost = grow(&mut b, &mut w, i - 1) + *right;
             let better = cost.cmplt(best) & usable;
             best = Vec4::select(better, cost, best);
             let m = better.bitmask();
