@@ -16,7 +16,7 @@
 //! are dragged into nodes they miss (masked off, but the node is fetched).
 //!
 //! Run: `cargo bench -p rebraid --bench packets` (skips on CPUs without
-//! AVX2 and FMA). Result and decision: `docs/performance.md`.
+//! the AVX2 level). Result and decision: `docs/performance.md`.
 
 #[path = "../tests/common/mod.rs"]
 mod common;
@@ -76,11 +76,11 @@ fn ray_box(ray: &Ray) -> Option<RayBox> {
 /// distances with `+inf` in the lanes missed.
 ///
 /// # Safety
-/// AVX2 and FMA.
+/// The CPU has the AVX2 level.
 #[inline(always)]
 unsafe fn test_node(b: &RayBox, node: &WideNode<8>, t_max: f32) -> (u32, __m256) {
     let p = node.planes();
-    // SAFETY: AVX2 and FMA per the contract; each load reads one `[f32; 8]`.
+    // SAFETY: the AVX2 level per the contract; each load reads one `[f32; 8]`.
     unsafe {
         let mut near = b.t_min;
         let mut far = _mm256_set1_ps(t_max);
@@ -116,8 +116,8 @@ fn transpose8(rows: [u8; 8]) -> [u8; 8] {
 /// has a zero direction component.
 ///
 /// # Safety
-/// The CPU must have AVX2 and FMA.
-#[target_feature(enable = "avx2,fma")]
+/// The CPU must have the AVX2 level.
+#[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt")]
 unsafe fn intersect_packet(
     nodes: &[WideNode<8>],
     blocks: &[Triangle4],
@@ -144,7 +144,7 @@ unsafe fn intersect_packet(
             while lanes != 0 {
                 let r = lanes.trailing_zeros() as usize;
                 lanes &= lanes - 1;
-                // SAFETY: AVX2 and FMA per this function's contract.
+                // SAFETY: the AVX2 level per this function's contract.
                 let (mask, dist) = unsafe { test_node(&boxes[r], node, t_max[r]) };
                 rows[r] = mask as u8;
                 nearest = _mm256_min_ps(nearest, dist);
@@ -279,7 +279,7 @@ fn prepared(name: &'static str) -> Option<&'static Prepared> {
 /// as the single-ray kernel's hit record makes it, so that both variants
 /// do the same work per hit.
 fn packet_hits(p: &Prepared, tile: &[Ray; 8]) -> [Option<(u32, u32)>; 8] {
-    // SAFETY: `main` checked AVX2 and FMA.
+    // SAFETY: `main` checked the AVX2 level.
     match unsafe { intersect_packet(&p.w8.wide.nodes, &p.w8.blocks, tile) } {
         Some(hits) => hits.map(|h| {
             h.map(|(t, _, _, k)| {

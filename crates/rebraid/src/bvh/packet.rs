@@ -96,7 +96,7 @@ impl Packet8 {
     /// `l` holds `rays[l]`.
     ///
     /// # Safety
-    /// Callers must run on a CPU with AVX2 and FMA (the packet's existence
+    /// Callers must run on a CPU of the AVX2 level (the packet's existence
     /// is what `Packet8::test_child` relies on).
     #[inline(always)]
     pub unsafe fn new(rays: &[&Ray]) -> Self {
@@ -136,7 +136,7 @@ impl Packet8 {
     #[inline(always)]
     unsafe fn build(rays: &[&Ray]) -> (Self, bool) {
         debug_assert!((1..=PACKET).contains(&rays.len()));
-        // SAFETY: the caller runs on a CPU with AVX2 and FMA; each load
+        // SAFETY: the caller runs on a CPU of the AVX2 level; each load
         // reads one whole `Ray` (32 bytes: origin, t_min, dir, t_max).
         unsafe {
             // Unused lanes repeat the first ray: masked off.
@@ -248,7 +248,7 @@ impl Packet8 {
     fn test_child_near(&self, node: &WideNode<8>, c: usize) -> (u32, __m256) {
         debug_assert!(c < 8);
         let planes = node.planes().as_ptr().cast::<u8>();
-        // SAFETY: a `Packet8` exists only on CPUs with AVX2 and FMA (see
+        // SAFETY: a `Packet8` exists only on CPUs of the AVX2 level (see
         // `Packet8::new`); each broadcast reads the `f32` of slot `c < 8`
         // of one of the node's six 32-byte planes (offsets below 192 in
         // steps of 32, made by `Packet8::new` from `FmaSlab`'s plane
@@ -1055,7 +1055,7 @@ mod tests {
                 .collect();
             let refs: Vec<&Ray> = rays.iter().collect();
             let all = rays.iter().all(packetable);
-            // SAFETY: AVX2 and FMA are available (checked above).
+            // SAFETY: the AVX2 level is available (checked above).
             let Some(p) = (unsafe { Packet8::try_new(&refs) }) else {
                 assert!(!all, "a packet of packetable rays was refused");
                 refused += 1;
@@ -1136,7 +1136,7 @@ mod tests {
                 .collect();
             assert!(rays.iter().all(packetable));
             let refs: Vec<&Ray> = rays.iter().collect();
-            // SAFETY: AVX2 and FMA are available (checked above).
+            // SAFETY: the AVX2 level is available (checked above).
             let packet = unsafe { Packet8::new(&refs) };
             assert_eq!(packet.lanes, (1 << n) - 1);
             for (l, r) in rays.iter().enumerate() {
@@ -1279,7 +1279,7 @@ mod tests {
             edges += scalar_lanes;
             // Closest hits: each lane's is its ray's own leaf test's, bit
             // for bit (t, u, v and slot).
-            // SAFETY: AVX2 and FMA are available (checked above).
+            // SAFETY: the AVX2 level is available (checked above).
             let mut lanes8 = unsafe { Packet8::new(&refs) };
             let mut keys = LaneKeys::NONE;
             let mut closest = [None; PACKET];

@@ -926,7 +926,7 @@ mod packets {
             if self.triangles.is_none() {
                 let states = &mut self.states;
                 // SAFETY: `Lanes` exist only inside `occluded`, which runs
-                // only on CPUs with AVX2 and FMA.
+                // only on CPUs of the AVX2 level.
                 let t = unsafe { TrianglePacket::new(self.rays, |l| *states[l].wray()) };
                 self.triangles = Some(t);
             }
@@ -1221,7 +1221,7 @@ mod packets {
     /// See [`TopLevelAccel::intersect_many`]; `nodes` is the wide top
     /// level. A target-feature function for the reason given at
     /// [`occluded`].
-    #[target_feature(enable = "avx2,fma")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt")]
     pub(super) fn intersect<O>(
         accel: &TopLevelAccel,
         nodes: &[WideNode<8>],
@@ -1250,7 +1250,7 @@ mod packets {
             },
             |rays, answers| {
                 // SAFETY: an `Avx2Factory` exists only where the CPU has
-                // AVX2 and FMA.
+                // the AVX2 level.
                 let Some(mut packet) = (unsafe { Packet8::try_new(rays) }) else {
                     return false;
                 };
@@ -1277,7 +1277,7 @@ mod packets {
     /// A target-feature function, so that the closures below are compiled
     /// for AVX2 too: left to inherit it by inlining, they were not, and
     /// every intrinsic of the packet test became a call (ten times slower).
-    #[target_feature(enable = "avx2,fma")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt")]
     pub(super) fn occluded(
         accel: &TopLevelAccel,
         nodes: &[WideNode<8>],
@@ -1294,7 +1294,7 @@ mod packets {
             },
             |rays| {
                 // SAFETY: an `Avx2Factory` exists only where the CPU has
-                // AVX2 and FMA.
+                // the AVX2 level.
                 let packet = unsafe { Packet8::new(rays) };
                 let mut lanes = Lanes {
                     accel,
@@ -1474,7 +1474,7 @@ impl TopLevelAccel {
             && let Some(wide) = &self.wide
             && crate::bvh::simd::with_avx2(|f| {
                 // SAFETY: an `Avx2Factory` exists only where the CPU has
-                // AVX2 and FMA.
+                // the AVX2 level.
                 unsafe { packets::intersect(self, &wide.nodes, f, rays, out, &answer) }
             })
             .is_some()
@@ -1504,7 +1504,7 @@ impl TopLevelAccel {
             && let Some(wide) = &self.wide
             && crate::bvh::simd::with_avx2(|f| {
                 // SAFETY: an `Avx2Factory` exists only where the CPU has
-                // AVX2 and FMA.
+                // the AVX2 level.
                 unsafe { packets::occluded(self, &wide.nodes, f, rays, out) }
             })
             .is_some()
