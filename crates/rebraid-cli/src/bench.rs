@@ -15,7 +15,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use rebraid::glam::Vec3;
-use rebraid::{AccelMode, Hit, Ray, Scene, SceneDesc, SceneParams};
+use rebraid::{AccelMode, CommitReport, Hit, Ray, Scene, SceneDesc, SceneParams};
 use serde::Serialize;
 
 use crate::camera::Camera;
@@ -283,15 +283,21 @@ pub fn bench_scene(
             let m = cfg.modes.len();
             let mut builds: Vec<Vec<(f64, f64, f64)>> = vec![Vec::new(); m];
             let mut scenes: Vec<Option<Scene>> = (0..m).map(|_| None).collect();
+            // One build of `mode`'s scene (the timed ones and the warm-up).
+            let build = |mode: AccelMode| -> anyhow::Result<(Scene, CommitReport)> {
+                let mut params = cfg.params.clone();
+                params.mode = mode;
+                let mut scene = Scene::from_desc(desc, params)?;
+                let report = scene.commit()?;
+                Ok((scene, report))
+            };
             if cfg.warmup {
                 for &mode in &cfg.modes {
                     progress(&format!(
                         "{name}: warm-up build {} ({threads} thr)",
                         mode.name()
                     ));
-                    let mut params = cfg.params.clone();
-                    params.mode = mode;
-                    Scene::from_desc(desc, params)?.commit()?;
+                    build(mode)?;
                 }
             }
             for rep in 0..cfg.reps {
@@ -301,10 +307,7 @@ pub fn bench_scene(
                         mode.name(),
                         rep + 1
                     ));
-                    let mut params = cfg.params.clone();
-                    params.mode = mode;
-                    let mut scene = Scene::from_desc(desc, params)?;
-                    let r = scene.commit()?;
+                    let (scene, r) = build(mode)?;
                     builds[i].push((r.object_build_ms, r.top_build_ms, r.total_ms));
                     scenes[i] = Some(scene);
                 }
