@@ -6,9 +6,13 @@
 #   e.g. tools/callgrind-compare.sh ../shared/scenes/samurai_monastery.obj diffuse
 #
 # Why: on a shared machine, wall-clock A/B runs of the same binary stray from 1.0 by several
-# percent (docs/performance.md, session 9), while these counts are exact. Only the tracing is
-# counted: ours inside `bench::trace_sets` (ray and hit arrays included), Embree's inside
-# `rtcIntersect1`/`rtcOccluded1`. The cache model is this machine's as the chained-load
+# percent (docs/performance.md, session 9), while these counts are exact. What is counted is
+# each side's timed region, the batch call `rebraid bench` times: ours `Scene::intersect_batch`
+# / `Scene::occluded_batch`, Embree's `EmbreeScene::intersect_batch_with` /
+# `occluded_batch_with` (`rtcIntersect1` per ray with its ray and hit conversions). Both read the
+# ray array and write the answer array. (Before session 15 Embree's side counted `rtcIntersect1`
+# alone and ours all of `trace_sets`: about one last-level miss per ray apart for nothing.) The
+# cache model is this machine's as the chained-load
 # measurement sees it (`examples/memlat.rs`): 32 KiB L1D and a 1 MiB last level (the private L2;
 # the shared L3 does not help). Valgrind cannot run AVX-512, so Embree is capped at AVX2 (as our
 # kernels are). Needs `valgrind` and a build with `--features embree`. Default image: 240x135.
@@ -21,8 +25,11 @@ d=$(mktemp -d)
 trap 'rm -rf "$d"' EXIT
 valgrind --tool=callgrind --trace-children=yes --branch-sim=yes --cache-sim=yes \
     --I1=32768,8,64 --D1=32768,8,64 --LL=1048576,8,64 --collect-atstart=no \
-    --toggle-collect='rebraid_cli::bench::trace_sets' --toggle-collect='rtcIntersect1' \
-    --toggle-collect='rtcOccluded1' --callgrind-out-file="$d/cg.%p" \
+    --toggle-collect='rebraid::scene::Scene::intersect_batch' \
+    --toggle-collect='rebraid::scene::Scene::occluded_batch' \
+    --toggle-collect='rebraid_cli::embree::EmbreeScene::intersect_batch_with' \
+    --toggle-collect='rebraid_cli::embree::EmbreeScene::occluded_batch_with' \
+    --callgrind-out-file="$d/cg.%p" \
     "$bin" bench "$scene" --modes flat --sets "$set" --threads 1 --reps 1 --width 240 --height 135 \
     --embree --embree-isa avx2 --json "$d/flat.json" "$@" >/dev/null 2>&1
 # One output per process, named by pid: every row runs in a worker process whose command line
@@ -33,7 +40,8 @@ for f in "$d"/cg.*; do
 done
 valgrind --tool=callgrind --branch-sim=yes --cache-sim=yes \
     --I1=32768,8,64 --D1=32768,8,64 --LL=1048576,8,64 --collect-atstart=no \
-    --toggle-collect='rebraid_cli::bench::trace_sets' --callgrind-out-file="$d/rebraided.cg" \
+    --toggle-collect='rebraid::scene::Scene::intersect_batch' \
+    --toggle-collect='rebraid::scene::Scene::occluded_batch' --callgrind-out-file="$d/rebraided.cg" \
     "$bin" bench "$scene" --modes rebraided --sets "$set" --threads 1 --reps 1 --width 240 \
     --height 135 "$@" >/dev/null 2>&1
 python3 - "$d" "$set" "$(basename "$scene")" <<'PY'

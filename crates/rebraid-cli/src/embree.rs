@@ -425,6 +425,11 @@ impl EmbreeScene {
     /// `rtcIntersect1` per ray, or with `stream` one `rtcIntersect1M` per
     /// run of rays (Embree's stream API, which pays its API entry once per
     /// run, as our batch queries pay their kernel dispatch).
+    ///
+    /// Never inlined, as `Scene::intersect_batch` is not: the timed region
+    /// of each side is one function that `tools/callgrind-compare.sh`
+    /// counts, ray and answer arrays included on both sides.
+    #[inline(never)]
     pub fn intersect_batch_with(&self, rays: &[Ray], out: &mut [Option<EmbreeHit>], stream: bool) {
         if !stream {
             return rebraid::ray::par_query(rays, out, |r| self.intersect(r));
@@ -444,7 +449,8 @@ impl EmbreeScene {
 
     /// Occlusion of many rays, in parallel on the rayon pool (see
     /// [`EmbreeScene::intersect_batch_with`]; `rtcOccluded1M` with
-    /// `stream`).
+    /// `stream`). Never inlined (see `intersect_batch_with`).
+    #[inline(never)]
     pub fn occluded_batch_with(&self, rays: &[Ray], out: &mut [bool], stream: bool) {
         if !stream {
             return rebraid::ray::par_query(rays, out, |r| self.occluded(r));
