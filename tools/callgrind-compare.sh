@@ -11,8 +11,8 @@
 # / `Scene::occluded_batch`, Embree's `EmbreeScene::intersect_batch_with` /
 # `occluded_batch_with` (`rtcIntersect1` per ray with its ray and hit conversions). Both read the
 # ray array and write the answer array. (Before session 15 Embree's side counted `rtcIntersect1`
-# alone and ours all of `trace_sets`: about one last-level miss per ray apart for nothing.) The
-# cache model is this machine's as the chained-load
+# alone, without its ray and hit conversions, and ours all of `trace_sets`, with the answers'
+# summary after the clock stops.) The cache model is this machine's as the chained-load
 # measurement sees it (`examples/memlat.rs`): 32 KiB L1D and a 1 MiB last level (the private L2;
 # the shared L3 does not help). Valgrind cannot run AVX-512, so Embree is capped at AVX2 (as our
 # kernels are). Needs `valgrind` and a build with `--features embree`. Default image: 240x135.

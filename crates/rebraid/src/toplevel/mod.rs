@@ -631,9 +631,10 @@ const INSTANCE_CACHE: usize = 4;
 /// four slots per lane made a packet's lane states 16 KB of its stack
 /// frame, with one byte of each slot written when the states are made.
 /// One slot, measured (session 15, paired medians of 10 alternations,
-/// re-braided, one thread, 480x270): primary rays 2-8% faster on every
-/// shared scene, shadow rays 1-5%; callgrind's first-level misses per
-/// samurai monastery primary ray 4.24 -> 3.51.
+/// re-braided, one thread, 480x270): primary rays 4-8% faster on every
+/// shared scene, shadow rays 2-4%, diffuse rays (walked alone) unchanged;
+/// callgrind's first-level misses per samurai monastery primary ray 4.24
+/// -> 3.51.
 const LANE_INSTANCE_CACHE: usize = 1;
 
 /// An instance's id and the ray in its space, prepared for its box and
