@@ -11,7 +11,8 @@
 # `toplevel::packets::intersect` (re-braided and two-level closest hits),
 # `bvh::simd::intersect_packets_avx2` (flat closest hits) and their `occluded` counterparts.
 # Prints "count-per-ray instruction" for every instruction that ran, in address order, then the
-# function's total per ray. Only the tracing inside `bench::trace_sets` is counted, at
+# function's total per ray. Only the timed batch calls (`Scene::intersect_batch` /
+# `occluded_batch`, as in `tools/callgrind-compare.sh`) are counted, at
 # 240x135, one thread. Needs `valgrind` and `objdump`.
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
@@ -21,7 +22,8 @@ shift 4
 d=$(mktemp -d)
 trap 'rm -rf "$d"' EXIT
 valgrind --tool=callgrind --dump-instr=yes --compress-pos=no --compress-strings=no \
-    --collect-atstart=no --toggle-collect='rebraid_cli::bench::trace_sets' \
+    --collect-atstart=no --toggle-collect='rebraid::scene::Scene::intersect_batch' \
+    --toggle-collect='rebraid::scene::Scene::occluded_batch' \
     --callgrind-out-file="$d/cg" "$bin" bench "$scene" --modes "$mode" --sets "$set" \
     --threads 1 --reps 1 --width 240 --height 135 --json "$d/run.json" "$@" >/dev/null 2>&1
 python3 - "$d" "$bin" "$set" "$func" <<'PY'

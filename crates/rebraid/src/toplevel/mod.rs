@@ -623,7 +623,7 @@ fn ref_key(ri: u32, k: u32) -> u64 {
 /// hit reference is then a lane of [`TopLevelAccel::blocks`]).
 const INLINE_HIT: u32 = u32::MAX;
 
-/// Prepared instance rays kept per ray walked alone (see `RayState`).
+/// Prepared instance rays kept by a single-ray walk (see `RayState`).
 const INSTANCE_CACHE: usize = 4;
 
 /// Prepared instance rays kept per lane of a packet: one. Each slot holds
@@ -673,8 +673,10 @@ fn walk_ray<const ANY: bool, F: TesterFactory>(
 struct RayState<'r, T, const N: usize> {
     ray: &'r Ray,
     wray: Option<WatertightRay>,
-    /// Prepared instance rays, direct-mapped by instance id: refs of a few
-    /// overlapping instances alternate along a ray.
+    /// `N` prepared instance rays, direct-mapped by instance id: refs of
+    /// a few overlapping instances alternate along a ray
+    /// ([`INSTANCE_CACHE`] for a single-ray walk, [`LANE_INSTANCE_CACHE`]
+    /// for a packet's lanes).
     cached: [Option<InstanceRay<T>>; N],
     inner: TraversalCounters,
     best: Option<RefHit>,
