@@ -368,15 +368,19 @@ impl TrianglePacket {
             let zero = _mm256_setzero_ps();
             let lo = _mm256_min_ps(u, _mm256_min_ps(v, w));
             let hi = _mm256_max_ps(u, _mm256_max_ps(v, w));
-            let outside = _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_LT_OQ>(lo, zero),
-                _mm256_cmp_ps::<_CMP_GT_OQ>(hi, zero),
+            // "All >= 0 or all <= 0", so that NaN edge functions (a
+            // padding or collapsed triangle) count as outside, as in the
+            // SSE block test: a packet meeting a partial block then stops
+            // here at its padding triangles.
+            let inside = _mm256_or_ps(
+                _mm256_cmp_ps::<_CMP_GE_OQ>(lo, zero),
+                _mm256_cmp_ps::<_CMP_LE_OQ>(hi, zero),
             );
-            if _mm256_movemask_ps(outside) as u32 & active == active {
+            if _mm256_movemask_ps(inside) as u32 & active == 0 {
                 return None;
             }
-            let on_edge = _mm256_andnot_ps(
-                outside,
+            let on_edge = _mm256_and_ps(
+                inside,
                 _mm256_or_ps(
                     _mm256_cmp_ps::<_CMP_EQ_OQ>(lo, zero),
                     _mm256_cmp_ps::<_CMP_EQ_OQ>(hi, zero),
@@ -397,8 +401,11 @@ impl TrianglePacket {
                 _mm256_cmp_ps::<_CMP_LE_OQ>(t, t_max),
             );
             let ok = _mm256_andnot_ps(
-                _mm256_or_ps(outside, on_edge),
-                _mm256_and_ps(_mm256_cmp_ps::<_CMP_NEQ_UQ>(det, zero), in_range),
+                on_edge,
+                _mm256_and_ps(
+                    inside,
+                    _mm256_and_ps(_mm256_cmp_ps::<_CMP_NEQ_UQ>(det, zero), in_range),
+                ),
             );
             Some((
                 _mm256_movemask_ps(ok) as u32,

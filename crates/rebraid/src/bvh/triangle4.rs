@@ -462,21 +462,26 @@ mod x86 {
             // of its edge functions is zero and the scalar test takes the
             // `f64` path (which then sees the same strict signs). Min and
             // max give the six compares' answer for every lane that is not
-            // NaN; NaN lanes end with a NaN `t`, rejected either way.
+            // NaN. `inside` is written as "all >= 0 or all <= 0" so that a
+            // NaN `lo` / `hi` (exactly the lanes whose `w` is NaN: padding,
+            // collapsed triangles) counts as outside: those lanes' `t` is
+            // NaN and never a hit, and a block whose other lanes are all
+            // missed then skips the second stage below. (Written as
+            // "outside = lo < 0 and hi > 0" instead, every partial block
+            // went on to the division: session 16.)
             let lo = _mm_min_ps(u, _mm_min_ps(v, w));
             let hi = _mm_max_ps(u, _mm_max_ps(v, w));
-            let outside = _mm_and_ps(_mm_cmplt_ps(lo, zero), _mm_cmpgt_ps(hi, zero));
+            let inside = _mm_or_ps(_mm_cmpge_ps(lo, zero), _mm_cmple_ps(hi, zero));
             // Most tested triangles are missed here: skip the rest unless
             // some lane is still a candidate.
-            let open = !_mm_movemask_ps(outside) & 0xf;
-            if open == 0 {
+            if _mm_movemask_ps(inside) == 0 {
                 return (0, 0, [0.0; 4], [0.0; 4], [0.0; 4]);
             }
             // A lane that is not outside has an edge function of exactly
             // zero iff its smallest or largest one is zero (all are >= 0 or
             // all <= 0): the scalar test decides it in `f64`.
-            let scalar = _mm_andnot_ps(
-                outside,
+            let scalar = _mm_and_ps(
+                inside,
                 _mm_or_ps(_mm_cmpeq_ps(lo, zero), _mm_cmpeq_ps(hi, zero)),
             );
             let det = _mm_add_ps(_mm_add_ps(u, v), w);
@@ -495,8 +500,8 @@ mod x86 {
                 _mm_cmple_ps(t, _mm_set1_ps(t_max)),
             );
             let ok = _mm_andnot_ps(
-                _mm_or_ps(outside, scalar),
-                _mm_and_ps(_mm_cmpneq_ps(det, zero), in_range),
+                scalar,
+                _mm_and_ps(inside, _mm_and_ps(_mm_cmpneq_ps(det, zero), in_range)),
             );
             let hits = _mm_movemask_ps(ok) as u32;
             let scalar = _mm_movemask_ps(scalar) as u32;
