@@ -474,6 +474,8 @@ fn prefetch_node<const W: usize>(nodes: &[WideNode<W>], r: u32) {
             off += 64;
         }
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (nodes, r);
 }
 
 /// The traversal loop shared by every kernel, from wide node `start` (whose
