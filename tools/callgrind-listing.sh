@@ -10,7 +10,7 @@
 # FUNCTION is a substring of the (demangled) function name; the hot loops of our modes are
 # `toplevel::packets::intersect` (re-braided and two-level closest hits),
 # `bvh::simd::intersect_packets_avx2` (flat closest hits) and their `occluded` counterparts.
-# Prints "count-per-ray instruction" for every instruction that ran, in address order, then the
+# Prints "count-per-ray address: instruction" for every instruction that ran, in address order, then the
 # function's total per ray. Only the timed batch calls (`Scene::intersect_batch` /
 # `occluded_batch`, as in `tools/callgrind-compare.sh`) are counted, at
 # 240x135, one thread. Needs `valgrind` and `objdump`.
@@ -60,6 +60,6 @@ for line in asm.splitlines():
     if m and cost.get(int(m.group(1), 16)):
         c = cost[int(m.group(1), 16)]
         total += c
-        print(f"{c / rays:7.2f} {m.group(2)[:100]}")
+        print(f"{c / rays:7.2f} {m.group(1)}: {m.group(2)[:100]}")
 print(f"{total / rays:.1f} instructions per ray in functions matching {func!r} ({rays} rays)")
 PY
