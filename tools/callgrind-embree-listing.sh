@@ -33,43 +33,4 @@ for f in "$d"/cg.*; do
     if [ "$(grep -m1 -o -- '--mode [a-z-]*' "$f" | cut -d' ' -f2 || true)" = "$mode" ]; then out=$f; fi
 done
 [ -n "$out" ] || { echo "no callgrind output for $mode" >&2; exit 1; }
-python3 - "$out" "$d/run.json" "$set" <<'PY'
-import collections, json, re, subprocess, sys
-path, run, ray_set = sys.argv[1:4]
-rays = next(json.loads(l)[ray_set]["rays"] for l in open(run))
-cost, obj_of, fn_total = collections.Counter(), {}, collections.Counter()
-fn, obj, after_call = None, None, False
-for line in open(path):
-    if line.startswith("ob="):
-        obj = line[3:].strip()
-    elif line.startswith("fn="):
-        fn = line[3:].strip()
-    elif line.startswith("calls="):
-        after_call = True  # the next cost line is the call's inclusive cost
-    else:
-        m = re.match(r"^(0x[0-9a-f]+)\s+\d+\s+(\d+)", line)
-        if m:
-            if after_call:
-                after_call = False
-                continue
-            cost[(fn, int(m.group(1), 16))] += int(m.group(2))
-            fn_total[fn] += int(m.group(2))
-            obj_of[fn] = obj
-hot = next((f for f, _ in fn_total.most_common() if "embree" in (obj_of[f] or "")), None)
-if hot is None:
-    sys.exit("no Embree function ran")
-lib = obj_of[hot].split()[-1] if " " in obj_of[hot] else obj_of[hot]
-addrs = sorted(a for (f, a) in cost if f == hot)
-asm = subprocess.run(
-    ["objdump", "-d", "--no-show-raw-insn", "-M", "intel", lib,
-     f"--start-address={addrs[0]}", f"--stop-address={addrs[-1] + 16}"],
-    capture_output=True, text=True, check=True).stdout
-total = 0
-for line in asm.splitlines():
-    m = re.match(r"^\s+([0-9a-f]+):\s+(.*)", line)
-    c = m and cost.get((hot, int(m.group(1), 16)))
-    if c:
-        total += c
-        print(f"{c / rays:7.2f} {m.group(1)}: {m.group(2)[:100]}")
-print(f"{total / rays:.1f} instructions per ray in {hot.split()[0]} of {lib} ({rays} rays)")
-PY
+python3 "$here/cg_listing.py" "$out" "$d/run.json" "$set" --hottest-in embree
