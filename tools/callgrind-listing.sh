@@ -10,8 +10,8 @@
 # FUNCTION is a substring of the (demangled) function name; the hot loops of our modes are
 # `toplevel::packets::intersect` (re-braided and two-level closest hits),
 # `bvh::simd::intersect_packets_avx2` (flat closest hits) and their `occluded` counterparts.
-# Prints "count-per-ray address: instruction" for every instruction that ran, in address order, then the
-# function's total per ray. Only the timed batch calls (`Scene::intersect_batch` /
+# Prints "count-per-ray address: instruction" for every instruction that ran, in address
+# order, then the function's total per ray. Only the timed batch calls (`Scene::intersect_batch` /
 # `occluded_batch`, as in `tools/callgrind-compare.sh`) are counted, at
 # 240x135, one thread. Needs `valgrind` and `objdump`.
 set -euo pipefail

@@ -45,10 +45,13 @@ def main() -> None:
     ap.add_argument("callgrind_out")
     ap.add_argument("run_json")
     ap.add_argument("ray_set")
-    ap.add_argument("--function")
+    which = ap.add_mutually_exclusive_group(required=True)
+    which.add_argument("--function", help="substring of our function's name (needs --binary)")
+    which.add_argument("--hottest-in", help="substring of a shared object's path")
     ap.add_argument("--binary")
-    ap.add_argument("--hottest-in")
     a = ap.parse_args()
+    if a.function and not a.binary:
+        ap.error("--function needs --binary")
     rays = next(json.loads(l)[a.ray_set]["rays"] for l in open(a.run_json))
     cost, obj_of = read_costs(a.callgrind_out)
     if a.hottest_in:
