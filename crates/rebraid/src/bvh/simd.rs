@@ -1596,6 +1596,7 @@ mod tests {
     /// on a procedural scene's objects and a random soup, with rays whose
     /// direction has zero components, whose origin lies on a box plane (a
     /// vertex's coordinate) or which pass through a vertex among them.
+    #[cfg(target_arch = "x86_64")]
     #[test]
     fn sse_kernel_walks_as_the_scalar_reference() {
         if !Kernel::Sse.is_available() {
