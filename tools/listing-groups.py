@@ -13,10 +13,13 @@ set-up once. So the two kernels can be compared part by part:
 """
 import collections
 import re
+import signal
 import sys
 
 
 def main() -> None:
+    # Piped into `head`: stop quietly when the reader closes the pipe.
+    signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     top = int(sys.argv[1]) if len(sys.argv) > 1 else 16
     cost, count = collections.Counter(), collections.Counter()
     total = 0.0

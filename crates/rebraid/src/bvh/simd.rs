@@ -1630,11 +1630,7 @@ mod tests {
         fn walks<const W: usize, const ANY: bool>(
             w: &WideMeshBvh<W>,
             rays: &[(Vec3, Vec3, f32)],
-        ) -> usize
-        where
-            x86::SseTester: BoxTester<W>,
-            ScalarTester: BoxTester<W>,
-        {
+        ) -> usize {
             let mut leaves = 0;
             for &(origin, dir, t_max) in rays {
                 let wray = WatertightRay::new(origin, dir);
