@@ -40,14 +40,11 @@ pub fn cosine_direction(n: Vec3, u1: f32, u2: f32) -> Vec3 {
     (t * local.x + b * local.y + n * local.z).normalize()
 }
 
-/// The hit's normal turned to face the incoming ray.
+/// The hit's unit normal turned to face the incoming ray.
 #[inline]
 pub fn facing_normal(hit: &Hit, ray: &Ray) -> Vec3 {
-    if hit.normal.dot(ray.dir) > 0.0 {
-        -hit.normal
-    } else {
-        hit.normal
-    }
+    let n = hit.unit_normal();
+    if n.dot(ray.dir) > 0.0 { -n } else { n }
 }
 
 impl RaySets {

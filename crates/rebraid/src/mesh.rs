@@ -364,7 +364,7 @@ pub fn brute_force_intersect(mesh: &TriangleMesh, ray: &Ray) -> Option<Hit> {
                 prim_id: i as u32,
                 object_id: INVALID_ID,
                 instance_id: INVALID_ID,
-                normal: geometric_normal(a, b, c).normalize_or_zero(),
+                normal: geometric_normal(a, b, c),
             });
         }
     }

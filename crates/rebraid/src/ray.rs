@@ -125,9 +125,17 @@ where
 ///
 /// `u` and `v` are barycentric coordinates: the hit point is
 /// `(1 - u - v) * v0 + u * v1 + v * v2` of the triangle's vertices.
-/// `normal` is the unit geometric normal in world space, oriented by the
-/// triangle's winding as placed in the world: `normalize((v1 - v0) x (v2 - v0))`
-/// of the world-space vertices (for instances, of the transformed vertices).
+/// `normal` is the geometric normal in world space, oriented by the
+/// triangle's winding as placed in the world, and **not normalised** (as
+/// Embree's `Ng`): `(v1 - v0) x (v2 - v0)` of the world-space vertices, and
+/// for a hit through an instance the object-space one transformed as a
+/// normal (by the inverse transpose, negated by a mirroring transform), so
+/// its length is then not the placed triangle's. [`Hit::unit_normal`] gives
+/// the unit vector. Why: the normalisation's square root and division sat
+/// on every hit's latency chain, about 7% of a re-braided diffuse ray on
+/// openarena by `perf` samples (`docs/performance.md`, session 19), for
+/// callers that often need only the normal's side or shade with their own
+/// normals.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Hit {
     pub t: f32,
@@ -144,7 +152,8 @@ pub struct Hit {
 
 impl Hit {
     /// A hit on one mesh, from its leaf record: the primitive id and the
-    /// geometric normal (normalised here); no object or instance id yet.
+    /// geometric normal (as the leaf gives it, not normalised); no object
+    /// or instance id yet.
     #[inline(always)]
     pub fn on_mesh(t: f32, u: f32, v: f32, prim_id: u32, normal: Vec3) -> Hit {
         Hit {
@@ -154,8 +163,15 @@ impl Hit {
             prim_id,
             object_id: INVALID_ID,
             instance_id: INVALID_ID,
-            normal: normal.normalize_or_zero(),
+            normal,
         }
+    }
+
+    /// The unit geometric normal (`normal` normalised), or zero for a
+    /// placeholder hit.
+    #[inline]
+    pub fn unit_normal(&self) -> Vec3 {
+        self.normal.normalize_or_zero()
     }
 
     /// A placeholder that any real hit replaces.

@@ -457,10 +457,78 @@ fn mirrored_instance_normals_follow_world_winding() {
                 assert_eq!((h.object_id, h.instance_id, h.prim_id), (p, inst, 0));
                 assert!((h.t - 1.0).abs() < 1e-5, "{mode:?} case {k}: t {}", h.t);
                 assert!(
-                    (h.normal - *want).length() < 1e-5,
+                    (h.unit_normal() - *want).length() < 1e-5,
                     "{mode:?} case {k}: normal {:?}, want {want:?}",
                     h.normal
                 );
+            }
+        }
+    }
+}
+
+/// `Hit::normal` is not normalised (as Embree's `Ng`): a directly placed
+/// triangle's is the world cross product of its edges, twice its area long;
+/// through an instance it points the same way as the placed triangle's;
+/// `unit_normal` is its unit vector. Packets and single rays alike.
+#[test]
+fn hit_normals_are_geometric_not_unit() {
+    // Area 3 (legs 2 and 3), facing +z, in the plane z = 1.
+    let tri = TriangleMesh::from_triangles(&[[
+        Vec3::new(0.0, 0.0, 1.0),
+        Vec3::new(2.0, 0.0, 1.0),
+        Vec3::new(0.0, 3.0, 1.0),
+    ]])
+    .unwrap();
+    let xf = Affine3A::from_scale_rotation_translation(
+        Vec3::new(2.0, 0.5, 1.5),
+        rebraid::glam::Quat::from_rotation_x(0.4),
+        Vec3::new(5.0, 0.0, 0.0),
+    );
+    for mode in AccelMode::ALL {
+        let mut s = Scene::with_params(params(mode));
+        s.add_object(tri.clone()).unwrap();
+        let p = s.add_prototype(tri.clone()).unwrap();
+        s.add_instance(p, xf).unwrap();
+        // A second instance, so that the prototype is not baked into world
+        // space and the first one's hits take the instance transform.
+        s.add_instance(p, Affine3A::from_translation(Vec3::new(-50.0, 0.0, 0.0)))
+            .unwrap();
+        s.commit().unwrap();
+        // Eight rays (one packet) at the direct triangle, then at the
+        // instance's.
+        let direct: Vec<Ray> = (0..8)
+            .map(|i| Ray::infinite(Vec3::new(0.2 + 0.1 * i as f32, 0.3, 4.0), -Vec3::Z))
+            .collect();
+        let world_n = xf
+            .transform_vector3(Vec3::new(2.0, 0.0, 0.0))
+            .cross(xf.transform_vector3(Vec3::new(0.0, 3.0, 0.0)));
+        let target = xf.transform_point3(Vec3::new(0.3, 0.4, 1.0));
+        let placed: Vec<Ray> = (0..8)
+            .map(|i| {
+                let from = target + world_n.normalize() * (2.0 + 0.1 * i as f32);
+                Ray::infinite(from, target - from)
+            })
+            .collect();
+        for (rays, want) in [(&direct, Vec3::new(0.0, 0.0, 6.0)), (&placed, world_n)] {
+            let mut batch = vec![None; rays.len()];
+            s.intersect_batch(rays, &mut batch);
+            for (r, b) in rays.iter().zip(&batch) {
+                let h = s.intersect(r).unwrap_or_else(|| panic!("{mode:?}: no hit"));
+                assert_eq!(Some(h), *b, "{mode:?}: batch and single ray differ");
+                assert!(
+                    (h.unit_normal() - want.normalize()).length() < 1e-5,
+                    "{mode:?}: normal {:?}, want along {want:?}",
+                    h.normal
+                );
+                assert!((h.unit_normal().length() - 1.0).abs() < 1e-6);
+                if h.instance_id == INVALID_ID || mode == AccelMode::Flat {
+                    // Baked or direct: the world cross product itself.
+                    assert!(
+                        (h.normal - want).length() < 1e-4 * want.length(),
+                        "{mode:?}: normal {:?}, want {want:?}",
+                        h.normal
+                    );
+                }
             }
         }
     }

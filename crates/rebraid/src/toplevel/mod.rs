@@ -1556,19 +1556,16 @@ impl TopLevelAccel {
             normal,
         };
         if e.instance == INVALID_ID {
-            // A world-space normal (a baked placement's too: the geometric
-            // normal of transformed vertices is the transformed normal,
-            // mirrored with the winding).
+            // Already a world-space normal (a baked placement's too: its
+            // blocks hold the transformed vertices).
             (hit.object_id, hit.instance_id) = self.placement_of_slot(e.object);
-            hit.normal = hit.normal.normalize_or_zero();
             return hit;
         }
-        // One normalisation, after the transform: the object-space normal's
-        // own (sqrt and division) sat on the hit's latency chain for nothing.
+        // Not normalised (see `Hit`): transformed as a normal and flipped
+        // with a mirroring transform's winding.
         let xf = &self.instances[e.instance as usize];
         hit.instance_id = e.instance;
-        hit.normal =
-            (transform_normal(&xf.world_to_object, hit.normal) * xf.det_sign).normalize_or_zero();
+        hit.normal = transform_normal(&xf.world_to_object, hit.normal) * xf.det_sign;
         hit
     }
 
