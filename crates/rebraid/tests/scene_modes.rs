@@ -522,7 +522,9 @@ fn hit_normals_are_geometric_not_unit() {
                 );
                 assert!((h.unit_normal().length() - 1.0).abs() < 1e-6);
                 if h.instance_id == INVALID_ID || mode == AccelMode::Flat {
-                    // Baked or direct: the world cross product itself.
+                    // Placed directly, or traced in flat mode (which bakes
+                    // every instance into world space): the world cross
+                    // product itself.
                     assert!(
                         (h.normal - want).length() < 1e-4 * want.length(),
                         "{mode:?}: normal {:?}, want {want:?}",
