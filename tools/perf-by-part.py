@@ -55,13 +55,14 @@ def main() -> None:
         ips.append(ip)
     if base is None:
         sys.exit(f"{samples_path}: no sample in a symbol of {binary}")
+    # Grouped by the listing's printed count (two decimals), as listing-groups.py groups.
     instr, samples = collections.Counter(), collections.Counter()
     for count in runs.values():
-        instr[round(count, 2)] += count
+        instr[count] += count
     for ip in ips:
         count = runs.get(ip - base)
         if count is not None:
-            samples[round(count, 2)] += 1
+            samples[count] += 1
     total_i, total_s = sum(instr.values()), sum(samples.values())
     if total_s == 0:
         sys.exit("no sample fell on a listed instruction (listing and samples of one binary?)")
