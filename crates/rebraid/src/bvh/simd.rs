@@ -944,6 +944,15 @@ fn traverse_sse<const ANY: bool, L: FnMut(u32, u32, &mut f32) -> bool>(
 pub trait TesterFactory {
     type Tester: BoxTester<8> + Copy;
     fn make(&self, ray: &Ray) -> Self::Tester;
+
+    /// The ray's watertight form for the leaf tests, made as this kernel's
+    /// context allows: [`WatertightRay::new`] bit for bit (the AVX2
+    /// kernel's [`WatertightRay::new_avx`] permutes lanes instead of
+    /// indexing arrays by the axes).
+    #[inline(always)]
+    fn watertight(&self, ray: &Ray) -> WatertightRay {
+        WatertightRay::new(ray.origin, ray.dir)
+    }
 }
 
 /// A query run by [`with_kernel`] with the factory of the chosen kernel.
@@ -993,6 +1002,13 @@ impl TesterFactory for Avx2Factory {
         // `with_avx2`, which run only on CPUs of the AVX2 level (checked by
         // `with_kernel` and `with_avx2`).
         unsafe { x86::Avx2Tester::new(ray.origin, ray.dir, ray.t_min) }
+    }
+
+    #[inline(always)]
+    fn watertight(&self, ray: &Ray) -> WatertightRay {
+        // SAFETY: as in `make`: an `Avx2Factory` exists only on CPUs of the
+        // AVX2 level, which includes AVX.
+        unsafe { WatertightRay::new_avx(ray) }
     }
 }
 
@@ -1094,20 +1110,20 @@ pub fn query_subtree<const ANY: bool>(
 }
 
 /// One ray's query from the root of an 8-wide triangle tree with the
-/// caller's tester (the ray valid, the tree not empty): the single-ray
-/// body of the batch queries.
+/// kernel's tester and watertight ray (the ray valid, the tree not empty):
+/// the single-ray body of the batch queries.
 #[inline(always)]
-fn query_root<const ANY: bool, B: BoxTester<8>>(
+fn query_root<const ANY: bool, F: TesterFactory>(
     nodes: &[WideNode<8>],
     blocks: &[Triangle4],
-    tester: &B,
+    factory: &F,
     ray: &Ray,
 ) -> Option<LeafHit> {
-    let wray = WatertightRay::new(ray.origin, ray.dir);
-    subtree_with::<8, ANY, B>(
+    let wray = factory.watertight(ray);
+    subtree_with::<8, ANY, F::Tester>(
         nodes,
         blocks,
-        tester,
+        &factory.make(ray),
         &wray,
         ray.t_min,
         0,
@@ -1140,9 +1156,9 @@ pub fn query_many<const ANY: bool, O>(
         #[inline(always)]
         fn run<F: TesterFactory>(&mut self, factory: &F) {
             for (o, ray) in self.out.iter_mut().zip(self.rays) {
-                let hit = ray.is_valid().then(|| {
-                    query_root::<ANY, _>(self.nodes, self.blocks, &factory.make(ray), ray)
-                });
+                let hit = ray
+                    .is_valid()
+                    .then(|| query_root::<ANY, _>(self.nodes, self.blocks, factory, ray));
                 *o = (self.answer)(hit.flatten());
             }
         }
@@ -1236,8 +1252,8 @@ unsafe fn packet_constants(
     // SAFETY: the caller's promise.
     let packet = unsafe { Packet8::try_new(rays) }?;
     let wrays = std::array::from_fn(|l| {
-        let r = rays.get(l).unwrap_or(&rays[0]);
-        WatertightRay::new(r.origin, r.dir)
+        // SAFETY: the caller's promise (AVX2 includes AVX).
+        unsafe { WatertightRay::new_avx(rays.get(l).unwrap_or(&rays[0])) }
     });
     // SAFETY: the caller's promise.
     let triangles = unsafe { TrianglePacket::new(rays, |l| wrays[l]) };
@@ -1264,7 +1280,7 @@ fn intersect_packets_avx2<O>(
             for (o, ray) in out.iter_mut().zip(rays) {
                 let hit = ray
                     .is_valid()
-                    .then(|| query_root::<false, _>(nodes, blocks, &factory.make(ray), ray));
+                    .then(|| query_root::<false, _>(nodes, blocks, factory, ray));
                 *o = answer(hit.flatten());
             }
         },
@@ -1521,7 +1537,7 @@ fn occluded_packets_avx2(
     occluded_in_packets(
         rays,
         out,
-        |ray| query_root::<true, _>(nodes, blocks, &factory.make(ray), ray).is_some(),
+        |ray| query_root::<true, _>(nodes, blocks, factory, ray).is_some(),
         |rays| {
             // SAFETY: this function runs only on CPUs of the AVX2 level;
             // the rays were grouped as packetable.

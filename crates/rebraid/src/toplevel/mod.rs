@@ -285,21 +285,16 @@ impl InstanceXf {
         }
     }
 
-    /// The ray in the instance's object space, with its prepared forms (the
-    /// direction is transformed unnormalised, so `t` means the same).
+    /// The ray in the instance's object space (the direction is
+    /// transformed unnormalised, so `t` means the same).
     #[inline]
-    pub fn local_ray(&self, ray: &Ray) -> (Ray, WatertightRay) {
-        let o = self.world_to_object.transform_point3(ray.origin);
-        let d = self.world_to_object.transform_vector3(ray.dir);
-        (
-            Ray {
-                origin: o,
-                dir: d,
-                t_min: ray.t_min,
-                t_max: ray.t_max,
-            },
-            WatertightRay::new(o, d),
-        )
+    pub fn local_ray(&self, ray: &Ray) -> Ray {
+        Ray {
+            origin: self.world_to_object.transform_point3(ray.origin),
+            dir: self.world_to_object.transform_vector3(ray.dir),
+            t_min: ray.t_min,
+            t_max: ray.t_max,
+        }
     }
 
     /// World box of an object-space box.
@@ -733,7 +728,7 @@ impl<'r, T: BoxTester<8> + Copy, const N: usize> RayState<'r, T, N> {
         t_max: &mut f32,
     ) -> bool {
         if first >= a.block_base {
-            return self.copied_leaf::<ANY>(a, first, count, t_max, T::SIMD_TRIANGLES);
+            return self.copied_leaf::<ANY, F>(a, factory, first, count, t_max, T::SIMD_TRIANGLES);
         }
         for ri in first..first + count {
             if let Some((t, u, v, k)) = self.entry::<ANY, F>(a, factory, world, ri, *t_max) {
@@ -755,16 +750,17 @@ impl<'r, T: BoxTester<8> + Copy, const N: usize> RayState<'r, T, N> {
     /// against `t_max` inclusive, which equals the best hit's distance).
     /// Needs no box tester. Returns `true` to stop (any hit).
     #[inline(always)]
-    fn copied_leaf<const ANY: bool>(
+    fn copied_leaf<const ANY: bool, F: TesterFactory>(
         &mut self,
         a: &TopLevelAccel,
+        factory: &F,
         first: u32,
         count: u32,
         t_max: &mut f32,
         simd: bool,
     ) -> bool {
         let mut hit = None;
-        let stop = self.copied_blocks::<ANY>(a, first, count, t_max, &mut hit, simd);
+        let stop = self.copied_blocks::<ANY, F>(a, factory, first, count, t_max, &mut hit, simd);
         if let Some((t, u, v, k)) = hit
             && (ANY || nearer_ref(t, INLINE_HIT, k, &self.best))
         {
@@ -779,9 +775,11 @@ impl<'r, T: BoxTester<8> + Copy, const N: usize> RayState<'r, T, N> {
     /// `hit` (the caller keeps it or not). Needs no box tester. Returns
     /// `true` to stop (any hit).
     #[inline(always)]
-    fn copied_blocks<const ANY: bool>(
+    #[allow(clippy::too_many_arguments)] // the hot path: plain values
+    fn copied_blocks<const ANY: bool, F: TesterFactory>(
         &mut self,
         a: &TopLevelAccel,
+        factory: &F,
         first: u32,
         count: u32,
         t_max: &mut f32,
@@ -789,9 +787,7 @@ impl<'r, T: BoxTester<8> + Copy, const N: usize> RayState<'r, T, N> {
         simd: bool,
     ) -> bool {
         let ray = self.ray;
-        let wray = self
-            .wray
-            .get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
+        let wray = self.wray(factory);
         intersect_blocks::<ANY>(
             &a.blocks,
             wray,
@@ -822,14 +818,13 @@ impl<'r, T: BoxTester<8> + Copy, const N: usize> RayState<'r, T, N> {
             .get(r.object as usize)
             .and_then(|o| o.as_deref())?;
         if r.instance == INVALID_ID {
-            let wray = self
-                .wray
-                .get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir));
+            let wray = self.wray.get_or_insert_with(|| factory.watertight(ray));
             obj.query_entry::<ANY, _>(r.wide, r.node, ray, wray, world, t_max, &mut self.inner)
         } else {
             let slot = &mut self.cached[r.instance as usize % N];
             if slot.as_ref().is_none_or(|c| c.0 != r.instance) {
-                let (lr, lw) = a.instances[r.instance as usize].local_ray(ray);
+                let lr = a.instances[r.instance as usize].local_ray(ray);
+                let lw = factory.watertight(&lr);
                 *slot = Some((r.instance, lr, lw, None));
             }
             let (_, lr, lw, lt) = slot.as_mut().expect("set just above");
@@ -847,10 +842,9 @@ impl<'r, T: BoxTester<8> + Copy, const N: usize> RayState<'r, T, N> {
 
     /// The world ray's watertight form (made on first use).
     #[inline(always)]
-    fn wray(&mut self) -> &WatertightRay {
+    fn wray<F: TesterFactory>(&mut self, factory: &F) -> &WatertightRay {
         let ray = self.ray;
-        self.wray
-            .get_or_insert_with(|| WatertightRay::new(ray.origin, ray.dir))
+        self.wray.get_or_insert_with(|| factory.watertight(ray))
     }
 }
 
@@ -937,10 +931,10 @@ mod packets {
         #[inline(always)]
         fn triangles(&mut self) -> Option<&TrianglePacket> {
             if self.triangles.is_none() {
-                let states = &mut self.states;
+                let (states, factory) = (&mut self.states, self.factory);
                 // SAFETY: `Lanes` exist only inside `occluded`, which runs
                 // only on CPUs of the AVX2 level.
-                let t = unsafe { TrianglePacket::new(self.rays, |l| *states[l].wray()) };
+                let t = unsafe { TrianglePacket::new(self.rays, |l| *states[l].wray(factory)) };
                 self.triangles = Some(t);
             }
             self.triangles.as_ref().and_then(Option::as_ref)
@@ -948,11 +942,16 @@ mod packets {
     }
 
     /// The lanes' watertight rays inside an object BVH placed directly:
-    /// the world rays', kept in the lanes' walk states.
-    impl LaneWrays for &mut [RayState<'_, Avx2Tester, LANE_INSTANCE_CACHE>; PACKET] {
+    /// the world rays', kept in the lanes' walk states (made on first use).
+    struct StateWrays<'s, 'r> {
+        states: &'s mut [RayState<'r, Avx2Tester, LANE_INSTANCE_CACHE>; PACKET],
+        factory: &'s Avx2Factory,
+    }
+
+    impl LaneWrays for StateWrays<'_, '_> {
         #[inline(always)]
         fn wray(&mut self, lane: usize) -> &WatertightRay {
-            self[lane].wray()
+            self.states[lane].wray(self.factory)
         }
     }
 
@@ -973,13 +972,13 @@ mod packets {
                 let Some(&triangles) = self.triangles() else {
                     return leaf_by_lane(self, mask, first, count);
                 };
-                let (rays, states) = (self.rays, &mut self.states);
+                let (rays, states, factory) = (self.rays, &mut self.states, self.factory);
                 return triangles.occluded_blocks(
                     &a.blocks,
                     first - a.block_base,
                     count,
                     mask,
-                    |lane, b, j| scalar_triangle(rays[lane], states[lane].wray(), b, j),
+                    |lane, b, j| scalar_triangle(rays[lane], states[lane].wray(factory), b, j),
                 );
             }
             let mut left = mask;
@@ -1005,7 +1004,10 @@ mod packets {
                         factory: self.factory,
                         rays: self.rays,
                         testers: &mut self.worlds,
-                        wrays: &mut self.states,
+                        wrays: StateWrays {
+                            states: &mut self.states,
+                            factory: self.factory,
+                        },
                         triangles: triangles.as_ref(),
                     };
                     left &= !occluded_packet_from(&w.wide.nodes, packet, e.wide, left, &mut sub);
@@ -1034,8 +1036,9 @@ mod packets {
             let a = self.accel;
             if first >= a.block_base {
                 // Copied blocks need no box tester: not made for them.
-                return self.states[lane].copied_blocks::<true>(
+                return self.states[lane].copied_blocks::<true, _>(
                     a,
+                    self.factory,
                     first,
                     count,
                     &mut r.t_max.clone(),
@@ -1113,7 +1116,9 @@ mod packets {
             let mut t_max = packet.lane_t_max(lane);
             if first >= self.accel.block_base {
                 // Copied blocks need no box tester: not made for them.
-                self.states[lane].copied_leaf::<false>(self.accel, first, count, &mut t_max, true);
+                let (a, factory) = (self.accel, self.factory);
+                self.states[lane]
+                    .copied_leaf::<false, _>(a, factory, first, count, &mut t_max, true);
             } else {
                 self.entries_leaf::<false>(lane, first, count, &mut t_max);
             }
@@ -1137,7 +1142,7 @@ mod packets {
                 {
                     let mut keys = self.lane_keys();
                     let mut hits = [None; PACKET];
-                    let (rays, states) = (self.rays, &mut self.states);
+                    let (rays, states, factory) = (self.rays, &mut self.states, self.factory);
                     triangles.closest_blocks(
                         &a.blocks,
                         first - a.block_base,
@@ -1148,7 +1153,7 @@ mod packets {
                         super::ref_key(INLINE_HIT, 0),
                         |lane, h| hits[lane] = Some(h),
                         |lane, b, j, t_max| {
-                            scalar_closest(rays[lane], states[lane].wray(), b, j, t_max)
+                            scalar_closest(rays[lane], states[lane].wray(factory), b, j, t_max)
                         },
                     );
                     self.take_hits(hits, INLINE_HIT);
@@ -1181,7 +1186,10 @@ mod packets {
                             factory: self.factory,
                             rays: self.rays,
                             testers: &mut self.worlds,
-                            wrays: &mut self.states,
+                            wrays: StateWrays {
+                                states: &mut self.states,
+                                factory: self.factory,
+                            },
                             triangles: triangles.as_ref(),
                         },
                         hits: [None; PACKET],
