@@ -1148,7 +1148,7 @@ mod tests {
             assert_eq!(packet.lanes, (1 << n) - 1);
             for (l, r) in rays.iter().enumerate() {
                 // SAFETY: as above.
-                let alone = unsafe { Avx2Tester::new(r.origin, r.dir, r.t_min) };
+                let alone = unsafe { Avx2Tester::new(r) };
                 let mut dist = [0.0; 8];
                 let want = alone.test(&node, r.t_max, &mut dist);
                 for c in 0..8 {

@@ -243,7 +243,8 @@ fn plane_order(inv_dir: Vec3) -> ([usize; 3], [usize; 3]) {
 pub(crate) mod x86 {
     use core::arch::x86_64::*;
 
-    use super::{BoxTester, FmaSlab, ROBUST_FAR, plane_order};
+    use super::{BoxTester, ROBUST_FAR, plane_order};
+    use crate::Ray;
     use crate::bvh::wide::WideNode;
     use glam::Vec3;
 
@@ -358,27 +359,82 @@ pub(crate) mod x86 {
         /// Callers must run on a CPU of the AVX2 level (see
         /// [`SseTester::new`], also for why this is not a target-feature
         /// function).
+        ///
+        /// The constants are [`super::FmaSlab::new`]'s bit for bit (the same
+        /// lane arithmetic: one division, a product, the pad, a sum and a
+        /// difference; `-x` is a sign flip either way), computed on the
+        /// ray's two 16-byte halves as loaded: glam's three-lane vectors
+        /// cost shuffles at every conversion, and the nine broadcasts were
+        /// made lane by lane (about 30 instructions more per tester,
+        /// callgrind, `docs/performance.md`, session 20).
         #[inline(always)]
-        pub(crate) unsafe fn new(origin: Vec3, dir: Vec3, t_min: f32) -> Self {
-            let slab = FmaSlab::new(origin, dir);
-            let splat = |v: Vec3| -> [__m256; 3] {
-                [
-                    bytemuck::cast([v.x; 8]),
-                    bytemuck::cast([v.y; 8]),
-                    bytemuck::cast([v.z; 8]),
-                ]
-            };
-            let exact = !slab.is_finite();
-            let (near, far) = super::OCTANT_PLANE_BYTES[super::octant(slab.inv_dir.into())];
-            Self {
-                inv_dir: splat(slab.inv_dir),
-                neg_near_offset: splat(-if exact { origin } else { slab.near_offset }),
-                neg_far_offset: splat(-slab.far_offset),
-                near,
-                far,
-                t_min: bytemuck::cast([t_min; 8]),
-                exact,
+        pub(crate) unsafe fn new(ray: &Ray) -> Self {
+            // SAFETY: the caller's promise (AVX2). The loads read 16 bytes
+            // at offsets 0 and 16 of a 32-byte `repr(C)` `Ray`: `origin`
+            // then `t_min`, `dir` then `t_max`. Lane 3 (`t_min`, `t_max`
+            // and what follows from them) is never read: the masks keep
+            // bits 0..=2 and the broadcasts take lanes 0..=2.
+            unsafe {
+                let base = (ray as *const Ray).cast::<f32>();
+                let origin = _mm_loadu_ps(base);
+                let dir = _mm_loadu_ps(base.add(4));
+                let sign = _mm_set1_ps(-0.0);
+                let inv_dir = _mm_div_ps(_mm_set1_ps(1.0), dir);
+                let oi = _mm_mul_ps(origin, inv_dir);
+                let pad = _mm_mul_ps(_mm_andnot_ps(sign, oi), _mm_set1_ps(2.0 * f32::EPSILON));
+                let near_offset = _mm_add_ps(oi, pad);
+                let far_offset = _mm_sub_ps(oi, pad);
+                // `FmaSlab::is_finite`: `0 * x` is NaN exactly for a
+                // non-finite `x`.
+                let zero = _mm_setzero_ps();
+                let z = |v: __m128| _mm_mul_ps(v, zero);
+                let sum = _mm_add_ps(_mm_add_ps(z(inv_dir), z(near_offset)), z(far_offset));
+                let exact = _mm_movemask_ps(_mm_cmpeq_ps(sum, zero)) & 7 != 7;
+                let octant = (_mm_movemask_ps(inv_dir) & 7) as usize;
+                let (near, far) = super::OCTANT_PLANE_BYTES[octant];
+                let splat = |v: __m128| -> [__m256; 3] {
+                    [
+                        _mm256_broadcastss_ps(v),
+                        _mm256_broadcastss_ps(_mm_movehdup_ps(v)),
+                        _mm256_broadcastss_ps(_mm_movehl_ps(v, v)),
+                    ]
+                };
+                let near_or_origin = if exact { origin } else { near_offset };
+                Self {
+                    inv_dir: splat(inv_dir),
+                    neg_near_offset: splat(_mm_xor_ps(near_or_origin, sign)),
+                    neg_far_offset: splat(_mm_xor_ps(far_offset, sign)),
+                    near,
+                    far,
+                    t_min: _mm256_set1_ps(ray.t_min),
+                    exact,
+                }
             }
+        }
+
+        /// Lane 0 of each constant vector (`inv_dir`, the negated near and
+        /// far offsets), the plane offsets and the exact flag, after
+        /// checking that every vector holds one value in all eight lanes.
+        #[cfg(test)]
+        #[allow(clippy::type_complexity)]
+        pub(crate) fn constants(&self) -> ([[f32; 3]; 3], [usize; 3], [usize; 3], f32, bool) {
+            let lane0 = |v: __m256| {
+                let l: [f32; 8] = bytemuck::cast(v);
+                assert!(l.iter().all(|x| x.to_bits() == l[0].to_bits()), "{l:?}");
+                l[0]
+            };
+            let three = |v: &[__m256; 3]| v.map(lane0);
+            (
+                [
+                    three(&self.inv_dir),
+                    three(&self.neg_near_offset),
+                    three(&self.neg_far_offset),
+                ],
+                self.near,
+                self.far,
+                lane0(self.t_min),
+                self.exact,
+            )
         }
     }
 
@@ -771,7 +827,7 @@ impl<const W: usize> WideMeshBvh<W> {
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt")]
     fn query_avx2<const ANY: bool>(&self, ray: &Ray) -> Option<LeafHit> {
         // SAFETY: this function runs only on CPUs of the AVX2 level.
-        let tester = unsafe { x86::Avx2Tester::new(ray.origin, ray.dir, ray.t_min) };
+        let tester = unsafe { x86::Avx2Tester::new(ray) };
         // `W == 8` on this path (see `query`); the cast is a no-op then.
         let nodes: &[WideNode<8>] = {
             assert_eq!(W, 8);
@@ -918,7 +974,7 @@ fn traverse_avx2<const ANY: bool, L: FnMut(u32, u32, &mut f32) -> bool>(
     leaf: L,
 ) {
     // SAFETY: this function runs only on CPUs of the AVX2 level.
-    let tester = unsafe { x86::Avx2Tester::new(ray.origin, ray.dir, ray.t_min) };
+    let tester = unsafe { x86::Avx2Tester::new(ray) };
     traverse::<8, ANY, _, _>(nodes, &tester, start, t_max, counters, leaf)
 }
 
@@ -1001,7 +1057,7 @@ impl TesterFactory for Avx2Factory {
         // SAFETY: an `Avx2Factory` exists only inside `run_avx2` and
         // `with_avx2`, which run only on CPUs of the AVX2 level (checked by
         // `with_kernel` and `with_avx2`).
-        unsafe { x86::Avx2Tester::new(ray.origin, ray.dir, ray.t_min) }
+        unsafe { x86::Avx2Tester::new(ray) }
     }
 
     #[inline(always)]
@@ -1601,6 +1657,30 @@ mod tests {
                 .iter()
                 .all(|v| v.is_finite());
             assert_eq!(s.is_finite(), finite, "{origin} {dir}");
+            #[cfg(target_arch = "x86_64")]
+            if Kernel::Avx2.is_available() {
+                // The AVX2 tester's constants are these, bit for bit
+                // (minus the origin instead of the near offset on the
+                // exact path), the plane offsets the octant's in bytes.
+                let ray = Ray {
+                    origin,
+                    t_min: v(),
+                    dir,
+                    t_max: v(),
+                };
+                // SAFETY: the AVX2 level is available (checked above).
+                let avx = unsafe { x86::Avx2Tester::new(&ray) };
+                let ([inv, neg_near, neg_far], near, far, t_min, exact) = avx.constants();
+                let bits = |v: [f32; 3]| v.map(f32::to_bits);
+                let near_or_origin = if finite { s.near_offset } else { origin };
+                assert_eq!(exact, !finite, "{origin} {dir}");
+                assert_eq!(bits(inv), bits(s.inv_dir.to_array()));
+                assert_eq!(bits(neg_near), bits((-near_or_origin).to_array()));
+                assert_eq!(bits(neg_far), bits((-s.far_offset).to_array()));
+                assert_eq!(near, s.near_plane.map(|p| 32 * p));
+                assert_eq!(far, s.far_plane.map(|p| 32 * p));
+                assert_eq!(t_min.to_bits(), ray.t_min.to_bits());
+            }
         }
     }
 
@@ -1811,7 +1891,14 @@ mod tests {
             let mut d = [0.0f32; 8];
             let want = BoxTester::<8>::test(&scalar, &node, t_max, &mut d);
             // SAFETY: the AVX2 level checked above.
-            let tester = unsafe { x86::Avx2Tester::new(origin, dir, 0.0) };
+            let tester = unsafe {
+                x86::Avx2Tester::new(&Ray {
+                    origin,
+                    t_min: 0.0,
+                    dir,
+                    t_max: f32::INFINITY,
+                })
+            };
             let got = tester.test(&node, t_max, &mut d);
             assert_eq!(
                 want & !got,
