@@ -138,9 +138,14 @@ impl WatertightRay {
     ///
     /// # Safety
     /// The CPU must have AVX. Not a target-feature function, so that it
-    /// inlines into the AVX2 kernels' loops (as the box testers'
-    /// constructors, see `Avx2Tester::new`); called elsewhere, the
-    /// intrinsics would become calls.
+    /// always inlines into the AVX2 kernels (as `#[target_feature]` with
+    /// `#[inline]` it stayed a call in the re-braided packet lanes: 2.6%
+    /// more instructions per primary ray on openarena, callgrind). The
+    /// price: where LLVM compiles a caller out of line without AVX (a
+    /// closure given to a generic such as `std::array::from_fn`), each
+    /// intrinsic becomes a call, correct on an AVX CPU but slow (a
+    /// packet's eight made through `std::array::from_fn` cost flat primary
+    /// rays 13% more instructions: `packet_constants` loops instead).
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     pub unsafe fn new_avx(ray: &crate::Ray) -> Self {

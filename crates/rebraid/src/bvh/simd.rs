@@ -363,13 +363,16 @@ pub(crate) mod x86 {
         /// The constants are [`super::FmaSlab::new`]'s bit for bit (the same
         /// lane arithmetic: one division, a product, the pad, a sum and a
         /// difference; `-x` is a sign flip either way), computed on the
-        /// ray's two 16-byte halves as loaded: glam's three-lane vectors
-        /// cost shuffles at every conversion, and the nine broadcasts were
-        /// made lane by lane (about 30 instructions more per tester,
-        /// callgrind, `docs/performance.md`, session 20).
+        /// ray's two 16-byte halves as loaded (glam's three-lane vectors
+        /// cost shuffles at every conversion). Only baseline SSE2
+        /// intrinsics and plain arrays for the broadcasts: LLVM sometimes
+        /// compiles a closure that makes a tester out of line, without the
+        /// kernel's features (`Option::get_or_insert_with` for an
+        /// instance's tester), and an AVX intrinsic there becomes a call
+        /// per use (cocoa temple diffuse +3% instructions, session 20).
         #[inline(always)]
         pub(crate) unsafe fn new(ray: &Ray) -> Self {
-            // SAFETY: the caller's promise (AVX2). The loads read 16 bytes
+            // SAFETY: SSE2 (every x86-64 CPU). The loads read 16 bytes
             // at offsets 0 and 16 of a 32-byte `repr(C)` `Ray`: `origin`
             // then `t_min`, `dir` then `t_max`. Lane 3 (`t_min`, `t_max`
             // and what follows from them) is never read: the masks keep
@@ -393,10 +396,11 @@ pub(crate) mod x86 {
                 let octant = (_mm_movemask_ps(inv_dir) & 7) as usize;
                 let (near, far) = super::OCTANT_PLANE_BYTES[octant];
                 let splat = |v: __m128| -> [__m256; 3] {
+                    let l: [f32; 4] = bytemuck::cast(v);
                     [
-                        _mm256_broadcastss_ps(v),
-                        _mm256_broadcastss_ps(_mm_movehdup_ps(v)),
-                        _mm256_broadcastss_ps(_mm_movehl_ps(v, v)),
+                        bytemuck::cast([l[0]; 8]),
+                        bytemuck::cast([l[1]; 8]),
+                        bytemuck::cast([l[2]; 8]),
                     ]
                 };
                 let near_or_origin = if exact { origin } else { near_offset };
@@ -406,7 +410,7 @@ pub(crate) mod x86 {
                     neg_far_offset: splat(_mm_xor_ps(far_offset, sign)),
                     near,
                     far,
-                    t_min: _mm256_set1_ps(ray.t_min),
+                    t_min: bytemuck::cast([ray.t_min; 8]),
                     exact,
                 }
             }
@@ -1307,10 +1311,15 @@ unsafe fn packet_constants(
     use super::packet::{Packet8, TrianglePacket};
     // SAFETY: the caller's promise.
     let packet = unsafe { Packet8::try_new(rays) }?;
-    let wrays = std::array::from_fn(|l| {
-        // SAFETY: the caller's promise (AVX2 includes AVX).
-        unsafe { WatertightRay::new_avx(rays.get(l).unwrap_or(&rays[0])) }
-    });
+    // A plain loop, not `std::array::from_fn`: its closure was compiled
+    // out of line (without AVX), making every intrinsic of `new_avx` a
+    // call (flat primary rays +13% instructions, callgrind).
+    // SAFETY: the caller's promise (AVX2 includes AVX).
+    let mut wrays = [unsafe { WatertightRay::new_avx(rays[0]) }; super::packet::PACKET];
+    for (w, r) in wrays.iter_mut().zip(rays).skip(1) {
+        // SAFETY: as above.
+        *w = unsafe { WatertightRay::new_avx(r) };
+    }
     // SAFETY: the caller's promise.
     let triangles = unsafe { TrianglePacket::new(rays, |l| wrays[l]) };
     Some((packet, wrays, triangles))
