@@ -130,11 +130,10 @@ impl WatertightRay {
     /// permutes (`vpermilps`), instead of the portable path's scalar
     /// compares and arrays indexed by the axes (stored, then read back one
     /// lane at a computed offset): 39 instructions against 68 in
-    /// openarena's re-braided walk, 1.7-4.4% fewer per diffuse ray over
-    /// the shared scenes, 5-10% fewer per flat primary ray (packets make
-    /// eight); callgrind, `docs/performance.md`, session 20. The AVX2
-    /// kernel's tester factory calls it
-    /// ([`crate::bvh::TesterFactory::watertight`]).
+    /// openarena's re-braided walk (callgrind; with the leaner AVX2 box
+    /// tester of the same session, 2-6% fewer instructions per diffuse
+    /// ray: `docs/performance.md`, session 20). The AVX2 kernel's tester
+    /// factory calls it ([`crate::bvh::TesterFactory::watertight`]).
     ///
     /// # Safety
     /// The CPU must have AVX. Not a target-feature function, so that it
@@ -154,8 +153,7 @@ impl WatertightRay {
         // 32-byte `repr(C)` `Ray` at offsets 0 and 16: `origin` then
         // `t_min`, `dir` then `t_max`. Lane 3 (`t_min`, `t_max`) is never
         // read: the permutations fill lanes 0..=2 from lanes 0..=2 and lane
-        // 3 from lane 3, which is dropped, and the sign mask is read at bit
-        // `kz < 3` only.
+        // 3 from lane 3, which is dropped, and both masks keep bits 0..=2.
         unsafe {
             let base = (ray as *const crate::Ray).cast::<f32>();
             let o = _mm_loadu_ps(base);
