@@ -37,48 +37,44 @@ pub struct WatertightRay {
 #[inline(always)]
 pub fn dominant_axis(dir: Vec3) -> usize {
     let a = dir.abs();
-    let x_max = (a.x >= a.y) & (a.x >= a.z);
-    let y_max = !x_max & (a.y >= a.z);
-    // kz = 0 when x is the largest, else 1 when y is, else 2.
+    axis_of_magnitudes(a.x >= a.y, a.y >= a.z, a.x >= a.z)
+}
+
+/// [`dominant_axis`]'s rule on the three comparisons of the magnitudes
+/// (false for NaN): `kz = 0` when x is the largest, else 1 when y is, else
+/// 2. Shared with the table of [`WatertightRay::new_avx`].
+#[inline(always)]
+const fn axis_of_magnitudes(ge_xy: bool, ge_yz: bool, ge_xz: bool) -> usize {
+    let x_max = ge_xy & ge_xz;
+    let y_max = !x_max & ge_yz;
     const KZ: [usize; 4] = [2, 1, 0, 0];
     KZ[(x_max as usize) << 1 | y_max as usize]
 }
 
-/// The axis permutation `[kx, ky, kz, 3]` of [`WatertightRay::new`] for
-/// each dominant axis `kz` and sign of `dir[kz]`, indexed by `2 * kz +
-/// (dir[kz] < 0)`: a lane-permute control for [`WatertightRay::new_avx`].
-#[cfg(target_arch = "x86_64")]
-const PERMUTATIONS: [[i32; 4]; 6] = [
-    [1, 2, 0, 3],
-    [2, 1, 0, 3],
-    [2, 0, 1, 3],
-    [0, 2, 1, 3],
-    [0, 1, 2, 3],
-    [1, 0, 2, 3],
-];
+/// The shear's other two axes for dominant axis `kz`: `(kz + 1) % 3` and
+/// `(kz + 2) % 3`, swapped when the ray points down `kz` (`negative`) to
+/// preserve the triangle's winding.
+#[inline(always)]
+const fn shear_axes(kz: usize, negative: bool) -> (usize, usize) {
+    const NEXT: [usize; 4] = [1, 2, 0, 1];
+    let (k1, k2) = (NEXT[kz & 3], NEXT[NEXT[kz & 3] & 3]);
+    if negative { (k2, k1) } else { (k1, k2) }
+}
 
-/// For the 3-bit mask `[|x| >= |y|, |y| >= |z|, |x| >= |z|]` of a
-/// direction (bit 0 first) and the 3-bit mask of its negative components,
-/// indexed by `mask | negative << 3`: the row of [`PERMUTATIONS`], the
-/// choice of [`dominant_axis`] and of the sign test of
-/// [`WatertightRay::new`] made by one lookup.
+/// The lane-permute control `[kx, ky, kz, 3]` of
+/// [`WatertightRay::new_avx`] for each 3-bit mask `[|x| >= |y|, |y| >= |z|,
+/// |x| >= |z|]` of a direction (bit 0 first) and 3-bit mask of its
+/// negative components, indexed by `mask | negative << 3`: the axis choice
+/// and the sign test of [`WatertightRay::new`] (the same two functions) in
+/// one lookup.
 #[cfg(target_arch = "x86_64")]
-const PERMUTATION_ROWS: [u8; 64] = {
-    let mut t = [0u8; 64];
+const PERMUTATIONS: [[i32; 4]; 64] = {
+    let mut t = [[0; 4]; 64];
     let mut i = 0;
     while i < 64 {
-        let (ge_xy, ge_yz, ge_xz) = (i & 1 != 0, i & 2 != 0, i & 4 != 0);
-        let x_max = ge_xy && ge_xz;
-        let y_max = !x_max && ge_yz;
-        let kz = if x_max {
-            0
-        } else if y_max {
-            1
-        } else {
-            2
-        };
-        let negative = (i >> 3) >> kz & 1;
-        t[i] = (2 * kz + negative) as u8;
+        let kz = axis_of_magnitudes(i & 1 != 0, i & 2 != 0, i & 4 != 0);
+        let (kx, ky) = shear_axes(kz, (i >> 3) >> kz & 1 != 0);
+        t[i] = [kx as i32, ky as i32, kz as i32, 3];
         i += 1;
     }
     t
@@ -98,11 +94,7 @@ impl WatertightRay {
         let kz = dominant_axis(dir);
         let d = [dir.x, dir.y, dir.z, 0.0];
         let dz = d[kz & 3];
-        // (kz + 1) % 3 and (kz + 2) % 3, swapped to preserve the triangle's
-        // winding when the ray points down kz.
-        const NEXT: [usize; 4] = [1, 2, 0, 1];
-        let (k1, k2) = (NEXT[kz & 3], NEXT[NEXT[kz & 3] & 3]);
-        let (kx, ky) = if dz < 0.0 { (k2, k1) } else { (k1, k2) };
+        let (kx, ky) = shear_axes(kz, dz < 0.0);
         let sz = 1.0 / dz;
         Self {
             origin,
@@ -126,7 +118,7 @@ impl WatertightRay {
     /// [`WatertightRay::new`] for `ray`, bit for bit (the same dominant
     /// axis, the same division and products; a permutation only moves
     /// values), with the axis choice made by one compare of the magnitudes
-    /// and one table lookup, and the permutation applied by two AVX lane
+    /// and one table lookup ([`PERMUTATIONS`]), and the permutation applied by two AVX lane
     /// permutes (`vpermilps`), instead of the portable path's scalar
     /// compares and arrays indexed by the axes (stored, then read back one
     /// lane at a computed offset): 39 instructions against 68 in
@@ -168,7 +160,7 @@ impl WatertightRay {
             );
             let ge = _mm_movemask_ps(ge) & 7;
             let negative = _mm_movemask_ps(_mm_cmplt_ps(d, _mm_setzero_ps())) & 7;
-            let p = PERMUTATIONS[PERMUTATION_ROWS[(ge | negative << 3) as usize] as usize];
+            let p = PERMUTATIONS[(ge | negative << 3) as usize];
             let control = _mm_loadu_si128(p.as_ptr().cast());
             let dk: [f32; 4] = bytemuck::cast(_mm_permutevar_ps(d, control));
             let ok: [f32; 4] = bytemuck::cast(_mm_permutevar_ps(o, control));
