@@ -334,6 +334,12 @@ pub struct TopLevelAccel {
     pub blocks: Vec<Triangle4>,
     /// The entry each block of `blocks` was copied for.
     pub block_entry: Vec<u32>,
+    /// The (object, instance) a hit on each block of `blocks` reports: its
+    /// entry's placement ([`TopLevelAccel::placement_of_slot`] of the
+    /// entry's object), kept per block so that a hit record reads one
+    /// value instead of the entry, then the baked placements (about 15
+    /// instructions of the 85 that made a hit record per ray, session 21).
+    pub block_placement: Vec<(u32, u32)>,
     /// Leaf indices from here on name `blocks`, below it `entries`.
     pub block_base: u32,
     /// The placements traced from world-space BVHs (objects that one
@@ -909,7 +915,7 @@ mod packets {
     use crate::bvh::wide::is_leaf_ref;
     use crate::bvh::{TesterFactory, TraversalCounters, WideNode};
     use crate::triangle::WatertightRay;
-    use crate::{INVALID_ID, Ray};
+    use crate::{Hit, INVALID_ID, Ray};
 
     /// A packet's rays: each lane's world tester (made when the lane first
     /// needs it) and walk state.
@@ -1239,17 +1245,29 @@ mod packets {
         }
     }
 
+    /// A ray's answer from its walk's best hit, inlined into the kernel
+    /// (through `Option::map`'s closure it was a call per ray).
+    #[inline(always)]
+    #[allow(clippy::manual_map)] // the closure was not inlined
+    fn answer(accel: &TopLevelAccel, best: Option<RefHit>) -> Option<Hit> {
+        match best {
+            Some(h) => Some(accel.make_hit(h)),
+            None => None,
+        }
+    }
+
     /// See [`TopLevelAccel::intersect_many`]; `nodes` is the wide top
     /// level. A target-feature function for the reason given at
-    /// [`occluded`].
+    /// [`occluded`]. The hit records are made here, in this function's
+    /// AVX2 context: made through an answer closure passed in, they were
+    /// compiled out of line, a call per ray.
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt")]
-    pub(super) fn intersect<O>(
+    pub(super) fn intersect(
         accel: &TopLevelAccel,
         nodes: &[WideNode<8>],
         factory: &Avx2Factory,
         rays: &[Ray],
-        out: &mut [O],
-        answer: &impl Fn(&TopLevelAccel, Option<RefHit>) -> O,
+        out: &mut [Option<Hit>],
     ) {
         in_coherent_packets(
             rays,
@@ -1384,7 +1402,7 @@ impl TopLevelAccel {
             }
             _ => Default::default(),
         };
-        Self {
+        let mut accel = Self {
             tree,
             refs,
             objects,
@@ -1396,9 +1414,22 @@ impl TopLevelAccel {
             entries,
             blocks,
             block_entry,
+            block_placement: Vec::new(),
             block_base,
             baked: Vec::new(),
-        }
+        };
+        accel.place_blocks();
+        accel
+    }
+
+    /// Fill `block_placement` from `block_entry` and the baked placements.
+    fn place_blocks(&mut self) {
+        let placement: Vec<(u32, u32)> = self
+            .block_entry
+            .iter()
+            .map(|&ri| self.placement_of_slot(self.entries[ri as usize].object))
+            .collect();
+        self.block_placement = placement;
     }
 
     /// Name the last `baked.len()` slots of `objects` as the world-space
@@ -1413,6 +1444,7 @@ impl TopLevelAccel {
             )));
         }
         self.baked = baked;
+        self.place_blocks();
         Ok(self)
     }
 
@@ -1496,7 +1528,7 @@ impl TopLevelAccel {
             && crate::bvh::simd::with_avx2(|f| {
                 // SAFETY: an `Avx2Factory` exists only where the CPU has
                 // the AVX2 level.
-                unsafe { packets::intersect(self, &wide.nodes, f, rays, out, &answer) }
+                unsafe { packets::intersect(self, &wide.nodes, f, rays, out) }
             })
             .is_some()
         {
@@ -1541,19 +1573,29 @@ impl TopLevelAccel {
         with_kernel(self.kernel, &mut walk);
     }
 
+    #[inline(always)]
     fn make_hit(&self, (t, u, v, k, ri): RefHit) -> Hit {
-        let (e, (prim_id, normal)) = if ri == INLINE_HIT {
-            let e = &self.entries[self.block_entry[(k / 4) as usize] as usize];
-            (e, block_hit_record(&self.blocks, k))
-        } else {
-            let e = &self.entries[ri as usize];
-            let obj = self
-                .objects
-                .get(e.object as usize)
-                .and_then(|o| o.as_deref())
-                .expect("hit refs have objects");
-            (e, obj.hit_record(e.wide, k))
-        };
+        if ri == INLINE_HIT {
+            // A copied block: placed directly, a world-space normal.
+            let (prim_id, normal) = block_hit_record(&self.blocks, k);
+            let (object_id, instance_id) = self.block_placement[(k / 4) as usize];
+            return Hit {
+                t,
+                u,
+                v,
+                prim_id,
+                object_id,
+                instance_id,
+                normal,
+            };
+        }
+        let e = &self.entries[ri as usize];
+        let obj = self
+            .objects
+            .get(e.object as usize)
+            .and_then(|o| o.as_deref())
+            .expect("hit refs have objects");
+        let (prim_id, normal) = obj.hit_record(e.wide, k);
         let mut hit = Hit {
             t,
             u,
@@ -1723,8 +1765,28 @@ impl TopLevelAccel {
             ));
         }
         tree.validate(&boxes)?;
-        if self.block_entry.len() != self.blocks.len() {
+        if self.block_entry.len() != self.blocks.len()
+            || self.block_placement.len() != self.blocks.len()
+        {
             return Err("copied blocks and their entries differ in length".into());
+        }
+        for (b, (&ri, &placed)) in self
+            .block_entry
+            .iter()
+            .zip(&self.block_placement)
+            .enumerate()
+        {
+            let e = self
+                .entries
+                .get(ri as usize)
+                .ok_or_else(|| format!("copied block {b}: no entry {ri}"))?;
+            if placed != self.placement_of_slot(e.object) {
+                return Err(format!(
+                    "copied block {b}: placed as {placed:?}, its entry's object slot {} places {:?}",
+                    e.object,
+                    self.placement_of_slot(e.object)
+                ));
+            }
         }
         // Each run of copied blocks is its entry's object leaf, bit for bit.
         let mut b = 0;
@@ -1850,5 +1912,6 @@ impl TopLevelAccel {
             + std::mem::size_of_val(self.entries.as_slice())
             + std::mem::size_of_val(self.blocks.as_slice())
             + std::mem::size_of_val(self.block_entry.as_slice())
+            + std::mem::size_of_val(self.block_placement.as_slice())
     }
 }
