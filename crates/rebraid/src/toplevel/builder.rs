@@ -764,16 +764,16 @@ struct ListBinner<'a> {
 
 impl BinRange for ListBinner<'_> {
     fn run<const N: usize>(&self, map: &BinMapping) -> Option<SplitCandidate> {
+        let item = |r: &BuildRef| {
+            (
+                BinBox::from_aabb(&r.bounds),
+                Vec3A::from(r.bounds.center()),
+                r.weight(),
+            )
+        };
         let bin_chunk = |chunk: &[BuildRef]| {
             let mut bins = Bins::<N>::default();
-            for r in chunk {
-                bins.add(
-                    map,
-                    &BinBox::from_aabb(&r.bounds),
-                    r.bounds.center().into(),
-                    r.weight(),
-                );
-            }
+            bins.fill(map, chunk.iter().map(item));
             bins
         };
         if self.parallel {
@@ -790,14 +790,7 @@ impl BinRange for ListBinner<'_> {
         } else {
             // Filled in place (a returned `Bins` would be copied).
             let mut bins = Bins::<N>::default();
-            for r in self.list {
-                bins.add(
-                    map,
-                    &BinBox::from_aabb(&r.bounds),
-                    r.bounds.center().into(),
-                    r.weight(),
-                );
-            }
+            bins.fill(map, self.list.iter().map(item));
             bins.best_split(map)
         }
     }
