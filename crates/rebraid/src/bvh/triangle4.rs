@@ -427,15 +427,22 @@ mod x86 {
     pub(super) unsafe fn lanes(b: &Triangle4, r: &WatertightRay, t_min: f32, t_max: f32) -> Lanes {
         // SAFETY: plain SSE2 arithmetic; each load reads one aligned
         // `[f32; 4]` of the block (`Triangle4` is 16-byte aligned and its
-        // rows are 16 bytes), each store writes one `[f32; 4]`.
+        // rows are 16 bytes), each store writes one `[f32; 4]`; the
+        // volatile reads read `f32` fields of `r` (valid and aligned: it is
+        // a reference).
         unsafe {
             let (kx, ky, kz) = (r.kx, r.ky, r.kz);
-            let o = [
-                _mm_set1_ps(r.origin_k[0]),
-                _mm_set1_ps(r.origin_k[1]),
-                _mm_set1_ps(r.origin_k[2]),
-            ];
-            let (sx, sy, sz) = (_mm_set1_ps(r.sx), _mm_set1_ps(r.sy), _mm_set1_ps(r.sz));
+            // The ray's six constants are read here, at every block, by
+            // volatile loads, which LLVM may not hoist: hoisted out of a
+            // leaf's block loop, the broadcasts ran out of registers and
+            // were stored to stack slots at every leaf entry and read back
+            // per block (26 of a copied leaf's 61 entry instructions).
+            // Per diffuse ray, re-braided: samurai 883.8 -> 862.6
+            // instructions, nexuiz 1,876.1 -> 1,821.6 (callgrind, session
+            // 21).
+            let rd = |x: &f32| _mm_set1_ps(std::ptr::read_volatile(x));
+            let o = [rd(&r.origin_k[0]), rd(&r.origin_k[1]), rd(&r.origin_k[2])];
+            let (sx, sy, sz) = (rd(&r.sx), rd(&r.sy), rd(&r.sz));
             // Vertex `i` relative to the origin, sheared: (x, y, z) with z
             // not yet scaled, as `intersect_triangle` computes them.
             let vertex = |i: usize| {
