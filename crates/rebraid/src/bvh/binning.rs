@@ -134,10 +134,9 @@ impl<const N: usize> Default for Bins<N> {
 /// in one 32-byte row, so that growing it by a box is one eight-lane `min`
 /// (`vminps` on a `ymm` register, one load-and-min and one store per axis
 /// and primitive, where a [`BinBox`] takes a `min` and a `max` with a load
-/// and a store each). `max(a, b)` is
-/// `-min(-a, -b)` exactly (both return the second operand on equal
-/// inputs), so the bins, costs and trees are those of `BinBox` unions bit
-/// for bit.
+/// and a store each). `max(a, b)` is `-min(-a, -b)` exactly (both return
+/// the second operand on equal inputs), so the bins, costs and trees are
+/// those of `BinBox` unions bit for bit.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[repr(C, align(32))]
 pub struct BinRow {

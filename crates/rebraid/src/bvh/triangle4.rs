@@ -438,8 +438,8 @@ mod x86 {
     pub(super) unsafe fn lanes(b: &Triangle4, r: &WatertightRay, t_min: f32, t_max: f32) -> Lanes {
         // SAFETY: plain SSE2 arithmetic; each load reads one aligned
         // `[f32; 4]` of the block (`Triangle4` is 16-byte aligned and its
-        // rows are 16 bytes); the volatile reads read `f32` fields of `r` (valid and aligned: it is
-        // a reference).
+        // rows are 16 bytes); the volatile reads read `f32` fields of `r`
+        // (valid and aligned: it is a reference).
         unsafe {
             let (kx, ky, kz) = (r.kx, r.ky, r.kz);
             // The ray's six constants are read here, at every block, by
