@@ -285,6 +285,7 @@ impl<const N: usize> Bins<N> {
             "{} bins for a capacity of {N}",
             map.bins
         );
+        let row = BinRow::from_box(bounds);
         let b = map.bins3(centroid);
         for (axis, &bin) in b.iter().enumerate() {
             debug_assert!(bin < map.bins);
@@ -293,7 +294,7 @@ impl<const N: usize> Bins<N> {
             // `map.bins <= N` was asserted above; `axis < 3`.
             unsafe {
                 let slot = self.bounds.get_unchecked_mut(axis).get_unchecked_mut(bin);
-                slot.grow(&BinRow::from_box(bounds));
+                slot.grow(&row);
                 *self.weight.get_unchecked_mut(axis).get_unchecked_mut(bin) += weight;
             }
         }

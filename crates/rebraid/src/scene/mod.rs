@@ -636,8 +636,8 @@ impl Scene {
             let mut built: Vec<(usize, Built)> = order
                 .par_iter()
                 .with_max_len(1)
-                .map(|&k| (k, todo[k]))
-                .map(|(k, (i, bake))| {
+                .map(|&k| {
+                    let (i, bake) = todo[k];
                     let o = self.objects[i].as_ref().expect("listed above");
                     let baked = bake.and_then(|inst| {
                         let xf = &self.instances[inst as usize]

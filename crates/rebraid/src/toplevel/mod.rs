@@ -1575,48 +1575,39 @@ impl TopLevelAccel {
 
     #[inline(always)]
     fn make_hit(&self, (t, u, v, k, ri): RefHit) -> Hit {
-        if ri == INLINE_HIT {
+        let (prim_id, normal, (object_id, instance_id)) = if ri == INLINE_HIT {
             // A copied block: placed directly, a world-space normal.
-            let (prim_id, normal) = block_hit_record(&self.blocks, k);
-            let (object_id, instance_id) = self.block_placement[(k / 4) as usize];
-            return Hit {
-                t,
-                u,
-                v,
-                prim_id,
-                object_id,
-                instance_id,
-                normal,
-            };
-        }
-        let e = &self.entries[ri as usize];
-        let obj = self
-            .objects
-            .get(e.object as usize)
-            .and_then(|o| o.as_deref())
-            .expect("hit refs have objects");
-        let (prim_id, normal) = obj.hit_record(e.wide, k);
-        let mut hit = Hit {
+            let (prim, normal) = block_hit_record(&self.blocks, k);
+            (prim, normal, self.block_placement[(k / 4) as usize])
+        } else {
+            let e = &self.entries[ri as usize];
+            let obj = self
+                .objects
+                .get(e.object as usize)
+                .and_then(|o| o.as_deref())
+                .expect("hit refs have objects");
+            let (prim, normal) = obj.hit_record(e.wide, k);
+            if e.instance == INVALID_ID {
+                // Already a world-space normal (a baked placement's too:
+                // its blocks hold the transformed vertices).
+                (prim, normal, self.placement_of_slot(e.object))
+            } else {
+                // Not normalised (see `Hit`): transformed as a normal and
+                // flipped with a mirroring transform's winding.
+                let xf = &self.instances[e.instance as usize];
+                let normal = transform_normal(&xf.world_to_object, normal) * xf.det_sign;
+                (prim, normal, (e.object, e.instance))
+            }
+        };
+        Hit {
             t,
             u,
             v,
             prim_id,
-            object_id: e.object,
-            instance_id: INVALID_ID,
+            object_id,
+            instance_id,
             normal,
-        };
-        if e.instance == INVALID_ID {
-            // Already a world-space normal (a baked placement's too: its
-            // blocks hold the transformed vertices).
-            (hit.object_id, hit.instance_id) = self.placement_of_slot(e.object);
-            return hit;
         }
-        // Not normalised (see `Hit`): transformed as a normal and flipped
-        // with a mirroring transform's winding.
-        let xf = &self.instances[e.instance as usize];
-        hit.instance_id = e.instance;
-        hit.normal = transform_normal(&xf.world_to_object, hit.normal) * xf.det_sign;
-        hit
     }
 
     /// True when anything is hit within the ray's interval.
