@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Deterministic per-ray cost of our flat and re-braided modes against Embree's (AVX2) flat and
-# two-level modes: instructions, mispredicted branches and cache misses per ray, from callgrind.
+# two-level modes: instructions, data reads and writes (memory operands included), mispredicted
+# branches and cache misses per ray, from callgrind.
 #
 #   tools/callgrind-compare.sh SCENE SET [more `rebraid bench` options]
 #   e.g. tools/callgrind-compare.sh ../shared/scenes/samurai_monastery.obj diffuse
@@ -49,12 +50,12 @@ import json, re, sys
 d, ray_set, scene = sys.argv[1:4]
 rays = next(json.loads(l)[ray_set]["rays"] for l in open(f"{d}/flat.json"))
 print(f"{scene} {ray_set}: {rays} rays; per ray:")
-print(f"  {'mode':<20} {'instr':>8} {'mispred':>8} {'L1D miss':>9} {'LL miss':>8}")
+print(f"  {'mode':<20} {'instr':>8} {'reads':>8} {'writes':>8} {'mispred':>8} {'L1D miss':>9} {'LL miss':>8}")
 for mode in ["flat", "rebraided", "embree-flat", "embree-two-level"]:
     txt = open(f"{d}/{mode}.cg").read()
     ev = re.search(r"^events:\s+(.*)", txt, re.M).group(1).split()
     tot = dict(zip(ev, map(int, re.search(r"^summary:\s+(.*)", txt, re.M).group(1).split())))
     per = lambda k: tot.get(k, 0) / rays
-    print(f"  {mode:<20} {per('Ir'):8.1f} {per('Bcm') + per('Bim'):8.2f} "
+    print(f"  {mode:<20} {per('Ir'):8.1f} {per('Dr'):8.1f} {per('Dw'):8.1f} {per('Bcm') + per('Bim'):8.2f} "
           f"{per('D1mr') + per('D1mw'):9.2f} {per('DLmr') + per('DLmw'):8.2f}")
 PY
