@@ -597,8 +597,9 @@ fn traverse<const W: usize, const ANY: bool, B, L>(
     L: FnMut(u32, u32, &mut f32) -> bool,
 {
     // Unswitched on the tester's rare path: the AVX2 node test branched
-    // on it at every node (with the branch gone, 12-21 fewer instructions
-    // per diffuse ray on openarena and samurai, both modes, callgrind,
+    // on it at every node. Unswitched, 0.6-2.1% fewer instructions per
+    // re-braided diffuse ray and 2.1-3.7% per flat one on the shared
+    // scenes (samurai flat 785.9 -> 757.1, callgrind; docs/performance.md,
     // session 22).
     if tester.exact() {
         traverse_loop::<W, ANY, true, B, L>(nodes, tester, start, t_max, counters, leaf)
