@@ -15,6 +15,11 @@ pointer, as in the walk). Loads are modelled as first-level hits.
     tools/listing-groups.py < ours.lst          # find the node test's and its neighbours' counts
     tools/node-step-mca.py ours.lst --counts 4.09,5.87,4.41 [--cpu znver3] [--critical]
 
+A caveat measured in session 23 (docs/performance.md): changes that brought our modelled step
+from 34 to Embree's 29 cycles (child references as byte offsets plus the folded robust far
+product) changed no wall-clock figure measurably, so the model ranks step latencies with
+first-level hits; it does not predict time on its own.
+
 The counts are matched as printed (two decimals). Prints the modelled cycles per iteration;
 `--critical` adds llvm-mca's critical sequence, `--show` the instructions it ran.
 """
