@@ -17,8 +17,8 @@ pointer, as in the walk). Loads are modelled as first-level hits.
 
 A caveat measured in session 23 (docs/performance.md): changes that brought our modelled step
 from 34 to Embree's 29 cycles (child references as byte offsets plus the folded robust far
-product) changed no wall-clock figure measurably, so the model ranks step latencies with
-first-level hits; it does not predict time on its own.
+product) made diffuse rays only 1-1.5% faster by wall clock, not the ~6% the model implies:
+it ranks step latencies with first-level hits; it does not predict time on its own.
 
 The counts are matched as printed (two decimals). Prints the modelled cycles per iteration;
 `--critical` adds llvm-mca's critical sequence, `--show` the instructions it ran.
