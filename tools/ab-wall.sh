@@ -25,9 +25,13 @@ for i in $(seq 1 "$rounds"); do
     for s in $scenes; do
         for k in "${!bins[@]}"; do
             # shellcheck disable=SC2086 # PIN is a command prefix
-            ${PIN:-} "${bins[$k]}" bench "$s" --modes "$modes" --sets "$sets" --threads 1 \
+            if ! ${PIN:-} "${bins[$k]}" bench "$s" --modes "$modes" --sets "$sets" --threads 1 \
                 --reps "$reps" --width "$w" --height "$h" --json "$d/$k.$i.$(basename "$s").json" \
-                >/dev/null 2>&1
+                >"$d/log" 2>&1; then
+                echo "round $i: ${bins[$k]} bench $s failed:" >&2
+                tail -5 "$d/log" >&2
+                exit 1
+            fi
         done
     done
 done
