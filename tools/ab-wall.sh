@@ -12,7 +12,8 @@
 # by up to 10% in such medians, and a binary's position in the round biases it
 # (docs/performance.md, session 23); a change is resolved only where its ratio stands clear of
 # the control's. Environment: MODES (default rebraided,flat), SETS (diffuse), W and H (480x270),
-# REPS (1, repetitions inside each process, median), PIN (a command prefix, e.g. "taskset -c 1").
+# REPS (1, repetitions inside each process, median), PIN (a command prefix, e.g. "taskset -c 1"),
+# EXTRA (more `rebraid bench` options, e.g. "--scale 3" for the built-in library scene).
 set -euo pipefail
 rounds=$1 scenes=$2
 shift 2
@@ -24,10 +25,10 @@ trap 'rm -rf "$d"' EXIT
 for i in $(seq 1 "$rounds"); do
     for s in $scenes; do
         for k in "${!bins[@]}"; do
-            # shellcheck disable=SC2086 # PIN is a command prefix
+            # shellcheck disable=SC2086 # PIN is a command prefix, EXTRA a list of options
             if ! ${PIN:-} "${bins[$k]}" bench "$s" --modes "$modes" --sets "$sets" --threads 1 \
                 --reps "$reps" --width "$w" --height "$h" --json "$d/$k.$i.$(basename "$s").json" \
-                >"$d/log" 2>&1; then
+                ${EXTRA:-} >"$d/log" 2>&1; then
                 echo "round $i: ${bins[$k]} bench $s failed:" >&2
                 tail -5 "$d/log" >&2
                 exit 1
