@@ -554,9 +554,11 @@ pub(crate) mod x86 {
 }
 
 /// Prefetch the cache lines of wide node `r` (nothing for a leaf or an
-/// empty slot): for a child pushed on the stack, so that its node is in
-/// the first-level cache when it is popped, as Embree's BVH8 traversal
-/// prefetches the children it keeps. Measured (session 16, fastest of 15
+/// empty slot): for each hit child of a node with two or more hits, so
+/// that its node is in the first-level cache when it is taken or popped,
+/// as Embree's BVH8 traversal prefetches the children it keeps (session
+/// 24 moved the prefetch from the pushed children after the sort to
+/// every child as it is taken from the hit mask). Measured (session 16, fastest of 15
 /// alternations per binary, one thread, 480x270, against no prefetch):
 /// re-braided 0.996-1.019 on five shared scenes and the library (diffuse
 /// +0.1% to +1.6%), flat primary and shadow rays +3% to +11% (presumably
@@ -665,11 +667,22 @@ fn traverse_loop<const W: usize, const ANY: bool, const EXACT: bool, B, L>(
                 // (samurai diffuse, flat: 1,061 -> 1,048 per ray).
                 let j = mask.trailing_zeros() as usize;
                 mask &= mask - 1;
+                // Both children prefetched as they leave the hit mask,
+                // before their distances are read back and compared, as
+                // Embree's BVH8 traversal does: the node taken next starts
+                // its trip from memory a comparison earlier, and the one
+                // pushed is on its way when popped. Against prefetching
+                // only the pushed children, after the sort (one thread,
+                // 480x270, medians of 8-10 rounds, controls within 1%):
+                // diffuse rays +0.5% to +4.4% re-braided and +1% to +6%
+                // flat on five shared scenes, primary and shadow rays
+                // within 1.2% (docs/performance.md, session 24).
+                prefetch_node(nodes, node.child[i]);
+                prefetch_node(nodes, node.child[j]);
                 let (near, far) = if dist[j] < dist[i] { (j, i) } else { (i, j) };
                 if mask == 0 {
                     stack[sp].write((node.child[far], dist[far]));
                     sp += 1;
-                    prefetch_node(nodes, node.child[far]);
                     current = node.child[near];
                     continue;
                 }
@@ -685,6 +698,7 @@ fn traverse_loop<const W: usize, const ANY: bool, const EXACT: bool, B, L>(
                     let i = mask.trailing_zeros() as usize;
                     mask &= mask - 1;
                     let item = (dist[i], node.child[i]);
+                    prefetch_node(nodes, item.1);
                     let mut j = n;
                     // SAFETY: `hits[..n]` are written (`n` grows only after
                     // a write at or below it).
@@ -701,8 +715,6 @@ fn traverse_loop<const W: usize, const ANY: bool, const EXACT: bool, B, L>(
                     stack[sp].write((r, d));
                     sp += 1;
                 }
-                // SAFETY: `n >= 3`, so `hits[1]` is written.
-                prefetch_node(nodes, unsafe { hits[1].assume_init().1 });
                 // SAFETY: `hits[0]` was written first.
                 current = unsafe { hits[0].assume_init().1 };
                 continue;
