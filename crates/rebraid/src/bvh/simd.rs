@@ -675,7 +675,7 @@ fn traverse_loop<const W: usize, const ANY: bool, const EXACT: bool, B, L>(
                 // only the pushed children, after the sort (one thread,
                 // 480x270, medians of 8-10 rounds, controls within 1%):
                 // diffuse rays +0.5% to +4.4% re-braided and +1% to +6%
-                // flat on five shared scenes, primary and shadow rays
+                // flat on six shared scenes, primary and shadow rays
                 // within 1.2% (docs/performance.md, session 24).
                 prefetch_node(nodes, node.child[i]);
                 prefetch_node(nodes, node.child[j]);
