@@ -554,12 +554,13 @@ pub(crate) mod x86 {
 }
 
 /// Prefetch the cache lines of wide node `r` (nothing for a leaf or an
-/// empty slot): for each hit child of a node with two or more hits, so
-/// that its node is in the first-level cache when it is taken or popped,
-/// as Embree's BVH8 traversal prefetches the children it keeps (session
-/// 24 moved the prefetch from the pushed children after the sort to
-/// every child as it is taken from the hit mask). Measured (session 16, fastest of 15
-/// alternations per binary, one thread, 480x270, against no prefetch):
+/// empty slot): for each hit child of a node with two or more hits, as it
+/// leaves the hit mask (see `traverse_loop`), so that its node is in the
+/// first-level cache when it is taken or popped, as Embree's BVH8
+/// traversal prefetches the children it keeps. Prefetching at all, then
+/// only the pushed children after the sort, was measured in session 16
+/// (fastest of 15 alternations per binary, one thread, 480x270, against
+/// no prefetch):
 /// re-braided 0.996-1.019 on five shared scenes and the library (diffuse
 /// +0.1% to +1.6%), flat primary and shadow rays +3% to +11% (presumably
 /// the rays that go on alone from their packets, through this loop); see
