@@ -914,6 +914,21 @@ fn build_list(
         n = opened;
         (bounds, cbounds) = list_bounds(&list[..n], n > ctx.params.parallel_threshold);
     }
+    if n == 2 && ctx.params.max_leaf_refs == 1 && depth < MEDIAN_FROM_DEPTH {
+        if let Some(axis) = first_usable_axis(&cbounds) {
+            // What the binned sweep below decides for two refs, without it:
+            // on every usable axis each side holds one ref at the same cost
+            // (a sum of the same two terms), so the sweep keeps the lowest
+            // usable axis, and the ref of lower centroid goes left. Half of
+            // a top-level tree's inner nodes hold two refs.
+            if list[1].bounds.center()[axis] < list[0].bounds.center()[axis] {
+                list.swap(0, 1);
+            }
+            return split_and_recurse(
+                ctx, list, scratch, 2, 1, desc, desc_first, first, depth, bounds,
+            );
+        }
+    }
     let split = find_split(ctx, &list[..n], &cbounds, depth);
     // A leaf of several refs when the SAH prefers it: the refs' costs as seen
     // from this node's box against one traversal step plus the split.
@@ -968,7 +983,35 @@ fn build_list(
             mid
         }
     };
+    split_and_recurse(
+        ctx, list, scratch, n, nl, desc, desc_first, first, depth, bounds,
+    )
+}
+
+/// The lowest axis along which the binning of [`find_split`] can split
+/// centroids of these bounds ([`BinMapping::axis_usable`]).
+fn first_usable_axis(cbounds: &Aabb) -> Option<usize> {
+    let map = BinMapping::new(cbounds, 4);
+    (0..3).find(|&a| map.axis_usable(a))
+}
+
+/// Build the two sides of a list partitioned at `nl` (of its `n` refs) and
+/// return their parent.
+#[allow(clippy::too_many_arguments)]
+fn split_and_recurse(
+    ctx: &Ctx,
+    list: &mut [BuildRef],
+    scratch: &mut [BuildRef],
+    n: usize,
+    nl: usize,
+    desc: &mut [BvhNode],
+    desc_first: u32,
+    first: u32,
+    depth: u32,
+    bounds: Aabb,
+) -> BvhNode {
     debug_assert!(nl > 0 && nl < n);
+    let parallel = n > ctx.params.parallel_threshold;
 
     // Divide the spare slots in proportion to the sides' ref counts:
     // [left | left spare | right | right spare].
