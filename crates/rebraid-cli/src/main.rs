@@ -79,6 +79,10 @@ struct SceneOpts {
     /// Re-braiding budget: at least this many ref slots (Embree: 1000).
     #[arg(long)]
     budget_min: Option<usize>,
+    /// Re-braiding budget: the per-primitive term grows by the placements'
+    /// overlap over this when above 1 (default 15; 0: off, as Embree).
+    #[arg(long)]
+    budget_overlap_unit: Option<f32>,
     /// Do not open object BVHs through instance transforms (Embree's behaviour).
     #[arg(long)]
     no_open_instances: bool,
@@ -132,6 +136,7 @@ impl SceneOpts {
             min,
             per_initial_ref,
             per_primitive,
+            overlap_unit,
         } = &mut r.budget
         {
             if let Some(v) = self.budget_min {
@@ -142,6 +147,9 @@ impl SceneOpts {
             }
             if let Some(v) = self.budget_per_prim {
                 *per_primitive = v;
+            }
+            if let Some(v) = self.budget_overlap_unit {
+                *overlap_unit = v;
             }
         }
         r.open_instances = !self.no_open_instances;
@@ -186,6 +194,10 @@ impl SceneOpts {
                 self.budget_per_prim.map(|x| x.to_string()),
             ),
             ("budget-min", self.budget_min.map(|x| x.to_string())),
+            (
+                "budget-overlap-unit",
+                self.budget_overlap_unit.map(|x| x.to_string()),
+            ),
             ("open-rounds", self.open_rounds.map(|x| x.to_string())),
             ("max-leaf", self.max_leaf.map(|x| x.to_string())),
         ];

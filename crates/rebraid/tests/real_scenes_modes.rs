@@ -132,6 +132,7 @@ fn run(file: &str) {
                     min: 1 << 20,
                     per_initial_ref: 2.0,
                     per_primitive: 0.001,
+                    overlap_unit: 0.0,
                 },
                 ..Default::default()
             },

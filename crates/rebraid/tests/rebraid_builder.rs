@@ -25,6 +25,7 @@ fn huge_budget() -> RefBudget {
         min: 1 << 20,
         per_initial_ref: 2.0,
         per_primitive: 0.001,
+        overlap_unit: 0.0,
     }
 }
 
@@ -57,6 +58,15 @@ fn budgets_and_thresholds_build_valid_reachable_trees_that_answer_right() {
             min: 0,
             per_initial_ref: 0.0,
             per_primitive: 0.5,
+            overlap_unit: 0.0,
+        },
+        // The same scaled by the placements' overlap (these scenes overlap
+        // by more than 1, so the scale matters).
+        RefBudget::Scaled {
+            min: 0,
+            per_initial_ref: 0.0,
+            per_primitive: 0.05,
+            overlap_unit: 1.0,
         },
     ];
     let thresholds = [0.0f32, 0.05, 0.1, 0.5, 10.0];
@@ -82,7 +92,30 @@ fn budgets_and_thresholds_build_valid_reachable_trees_that_answer_right() {
                 // The budget counts each object once, however often placed.
                 let prims = model.distinct_triangles() as u64;
                 assert!(prims < model.world_triangles() as u64, "{what}");
-                assert_eq!(st.capacity, budget.capacity(n, prims), "{what}: {st:?}");
+                assert_eq!(
+                    st.capacity,
+                    budget.capacity(n, prims, st.overlap),
+                    "{what}: {st:?}"
+                );
+                // The overlap of the placements' world boxes, near that of
+                // their tight boxes (an instance's box is its object's box
+                // transformed, which may be looser, in the sum and in the
+                // union), and above 1 in these scenes.
+                let tight = world.placement_overlap();
+                assert!(
+                    tight > 1.0 && st.overlap > 0.5 * tight && st.overlap < 2.0 * tight,
+                    "{what}: overlap {} against {tight}",
+                    st.overlap
+                );
+                if let RefBudget::Scaled {
+                    overlap_unit: 1.0,
+                    per_primitive,
+                    ..
+                } = budget
+                {
+                    let unscaled = (per_primitive as f64 * prims as f64).ceil() as usize;
+                    assert!(st.capacity > unscaled.max(n), "{what}: {st:?}");
+                }
                 assert_eq!(st.spare_used, st.refs_final - n, "{what}: {st:?}");
                 assert!(st.nodes_opened <= st.spare_used, "{what}: {st:?}");
                 assert!(st.refs_final <= st.capacity, "{what}: {st:?}");

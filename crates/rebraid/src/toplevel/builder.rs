@@ -64,8 +64,9 @@ use crate::{Aabb, Error, INVALID_ID};
 /// How many ref slots the build may use in all.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum RefBudget {
-    /// `max(min, per_initial_ref * initial refs, per_primitive * primitives)`,
-    /// and never below the initial refs. Embree uses `(1000, 2.0, 0.001)`.
+    /// `max(min, per_initial_ref * initial refs, per_primitive * s *
+    /// primitives)`, and never below the initial refs, with `s` the overlap
+    /// scale below. Embree uses `(1000, 2.0, 0.001)` and no scale.
     ///
     /// `primitives` are those of the distinct objects the initial refs name:
     /// an object placed by many instances counts once. The budget bounds
@@ -84,31 +85,80 @@ pub enum RefBudget {
     /// 3.84-3.89) and stk_ravenbridge_mansion (top 4.7 / 2.4 ms; primary
     /// 6.09-6.04 / 6.05-6.06, shadow 7.63-7.66 / 7.77-7.69, diffuse
     /// 2.50-2.56 / 2.54-2.55).
+    ///
+    /// `overlap_unit` scales the primitive term with how much the placements
+    /// overlap: it is multiplied by `max(1, overlap / overlap_unit)`, where
+    /// `overlap` is the sum of the initial refs' box areas over the area of
+    /// their union (about how many placement boxes cover a point; the
+    /// "overlap" of `rebraid stats`). Opening pays where boxes of different
+    /// objects overlap (the paper's motivation), and the more they overlap,
+    /// the more refs it takes to separate them; where they hardly overlap
+    /// more refs buy nothing but build time. 0 turns the scaling off (as
+    /// Embree).
+    ///
+    /// The default, 0.03 per primitive and a unit of 15, scales only the
+    /// two shared scenes whose placements overlap most: nexuiz (overlap
+    /// 21.7, 0.0435 per primitive) and the library scene (24.9 at scale 3,
+    /// 0.05). Measured (session 25, `docs/performance.md`), instructions
+    /// per re-braided diffuse ray (callgrind): nexuiz 1,795.6 -> 1,714.8,
+    /// the library at scale 3 1,141.5 -> about 1,015 (0.045-0.075 per
+    /// primitive all gave 1,015-1,019); nexuiz shadow rays 952.7 -> 970.7.
+    /// The top level's build time grows with its refs (library: 141-181 ->
+    /// 260-300 ms of 1.0-1.2 s, one thread). A unit of 10 (0.065 and
+    /// 0.075) bought nexuiz -7% instructions but brought the library's
+    /// whole build to Embree's two-level build time. Fixed budgets on the
+    /// other scenes: 0.06 per primitive cut diffuse instructions by 2.5%
+    /// on openarena, 1.1% on ravenbridge, 2.7% on cocoa, none on samurai
+    /// or the engine; 0.2 cut them by 7-10% on the engine, cocoa and
+    /// nexuiz for 3-5 times the top level's build time.
     Scaled {
         min: usize,
         per_initial_ref: f32,
         per_primitive: f32,
+        overlap_unit: f32,
     },
     /// Exactly this many slots beyond the initial refs.
     Spare(usize),
 }
 
 impl RefBudget {
-    /// Total capacity of the ref array for a build.
-    pub fn capacity(&self, initial_refs: usize, primitives: u64) -> usize {
+    /// Total capacity of the ref array for a build over `initial_refs` refs
+    /// naming `primitives` distinct primitives, whose boxes overlap by
+    /// `overlap` (see [`RefBudget::Scaled`]; [`placement_overlap`]).
+    pub fn capacity(&self, initial_refs: usize, primitives: u64, overlap: f64) -> usize {
         match *self {
             RefBudget::Scaled {
                 min,
                 per_initial_ref,
                 per_primitive,
+                overlap_unit,
             } => {
+                let scale = if overlap_unit > 0.0 && overlap.is_finite() {
+                    (overlap / overlap_unit as f64).max(1.0)
+                } else {
+                    1.0
+                };
                 let a = (per_initial_ref as f64 * initial_refs as f64).ceil() as usize;
-                let b = (per_primitive as f64 * primitives as f64).ceil() as usize;
+                let b = (per_primitive as f64 * scale * primitives as f64).ceil() as usize;
                 min.max(a).max(b).max(initial_refs)
             }
             RefBudget::Spare(s) => initial_refs + s,
         }
     }
+}
+
+/// The sum of the refs' box half areas over the half area of their union:
+/// 1 for placements side by side, more as they overlap (0 without area).
+pub fn placement_overlap(refs: &[BuildRef]) -> f64 {
+    let all = refs.iter().fold(Aabb::EMPTY, |a, r| a.union(r.bounds));
+    let area = all.half_area() as f64;
+    if !(area > 0.0) {
+        return 0.0;
+    }
+    refs.iter()
+        .map(|r| r.bounds.half_area() as f64)
+        .sum::<f64>()
+        / area
 }
 
 /// Parameters of the top-level build.
@@ -190,6 +240,7 @@ impl Default for RebraidParams {
                 min: 1000,
                 per_initial_ref: 2.0,
                 per_primitive: 0.03,
+                overlap_unit: 15.0,
             },
             bins: 32,
             short_list: 64,
@@ -232,9 +283,10 @@ impl RebraidParams {
         if let RefBudget::Scaled {
             per_initial_ref,
             per_primitive,
+            overlap_unit,
             ..
         } = self.budget
-            && !(per_initial_ref >= 0.0 && per_primitive >= 0.0)
+            && !(per_initial_ref >= 0.0 && per_primitive >= 0.0 && overlap_unit >= 0.0)
         {
             return Err(Error::InvalidParameter(
                 "budget factors must be >= 0".into(),
@@ -287,6 +339,9 @@ pub struct TopLevelBuildStats {
     pub spare_used: usize,
     /// Size of the ref array (initial refs plus spare slots).
     pub capacity: usize,
+    /// [`placement_overlap`] of the initial refs, which may scale the
+    /// budget.
+    pub overlap: f64,
     pub top_nodes: usize,
     pub build_ms: f64,
 }
@@ -417,8 +472,9 @@ pub fn build_top_level_with(
         return Ok((Bvh::default(), Vec::new(), TopLevelBuildStats::default()));
     }
     let prims = distinct_object_prims(initial, &src);
+    let overlap = placement_overlap(initial);
     let capacity = if params.open {
-        params.budget.capacity(n, prims)
+        params.budget.capacity(n, prims, overlap)
     } else {
         n
     };
@@ -464,6 +520,7 @@ pub fn build_top_level_with(
         spare_used: out_refs.len() - n,
         nodes_opened: ctx.opened.load(Ordering::Relaxed) as usize,
         capacity,
+        overlap,
         top_nodes: nodes.len(),
         build_ms: start.elapsed().as_secs_f64() * 1e3,
     };
@@ -1063,4 +1120,65 @@ fn split_and_recurse(
     pair[0] = l;
     pair[1] = r;
     BvhNode::inner(bounds, desc_first)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    fn cube_ref(lo: Vec3, size: f32) -> BuildRef {
+        BuildRef {
+            bounds: Aabb::new(lo, lo + Vec3::splat(size)),
+            object: 0,
+            node: 0,
+            instance: INVALID_ID,
+            prims: 1,
+            cost: 1.0,
+        }
+    }
+
+    #[test]
+    fn placement_overlap_counts_covering_boxes() {
+        let a = cube_ref(Vec3::ZERO, 1.0);
+        // The same box twice: every point covered twice.
+        assert_eq!(placement_overlap(&[a, a]), 2.0);
+        // Side by side: 2 x 3 over the 2x1x1 union's 5.
+        let b = cube_ref(Vec3::X, 1.0);
+        assert_eq!(placement_overlap(&[a, b]), 6.0 / 5.0);
+        // A small box inside a large one.
+        let big = cube_ref(Vec3::ZERO, 2.0);
+        assert_eq!(placement_overlap(&[big, a]), (12.0 + 3.0) / 12.0);
+        // Nothing with an area: 0.
+        assert_eq!(placement_overlap(&[]), 0.0);
+        let flat = BuildRef {
+            bounds: Aabb::new(Vec3::ZERO, Vec3::ZERO),
+            ..a
+        };
+        assert_eq!(placement_overlap(&[flat]), 0.0);
+    }
+
+    #[test]
+    fn budget_grows_with_overlap_above_the_unit_only() {
+        let scaled = |overlap_unit| RefBudget::Scaled {
+            min: 10,
+            per_initial_ref: 2.0,
+            per_primitive: 0.01,
+            overlap_unit,
+        };
+        let budget = scaled(10.0);
+        // At or below the unit: the unscaled primitive term.
+        assert_eq!(budget.capacity(5, 100_000, 0.0), 1000);
+        assert_eq!(budget.capacity(5, 100_000, 10.0), 1000);
+        // Above it: in proportion.
+        assert_eq!(budget.capacity(5, 100_000, 25.0), 2500);
+        // Not finite: unscaled.
+        assert_eq!(budget.capacity(5, 100_000, f64::INFINITY), 1000);
+        assert_eq!(budget.capacity(5, 100_000, f64::NAN), 1000);
+        // Off.
+        assert_eq!(scaled(0.0).capacity(5, 100_000, 25.0), 1000);
+        // The other terms still bound it from below.
+        assert_eq!(budget.capacity(5, 10, 25.0), 10);
+        assert_eq!(budget.capacity(700, 10, 25.0), 1400);
+    }
 }

@@ -16,7 +16,7 @@ use rebraid::glam::{Affine3A, EulerRot, Mat3, Quat, Vec3};
 use rebraid::scene::Accel;
 use rebraid::toplevel::TopLevelAccel;
 use rebraid::triangle::{WatertightRay, geometric_normal, intersect_triangle, is_degenerate};
-use rebraid::{Hit, INVALID_ID, Ray, Scene, SceneParams, TriangleMesh};
+use rebraid::{Aabb, Hit, INVALID_ID, Ray, Scene, SceneParams, TriangleMesh};
 
 pub fn rng(seed: u64) -> Pcg64 {
     Pcg64::seed_from_u64(seed)
@@ -263,6 +263,20 @@ pub struct World {
 }
 
 impl World {
+    /// The sum of the placements' box half areas (boxes of their
+    /// non-degenerate world triangles) over the half area of their union.
+    pub fn placement_overlap(&self) -> f64 {
+        let mut boxes: HashMap<(u32, u32), Aabb> = HashMap::new();
+        for t in &self.tris {
+            let b = boxes.entry((t.object, t.instance)).or_insert(Aabb::EMPTY);
+            for v in t.v {
+                *b = b.grow(v);
+            }
+        }
+        let all = boxes.values().fold(Aabb::EMPTY, |a, b| a.union(*b));
+        boxes.values().map(|b| b.half_area() as f64).sum::<f64>() / all.half_area() as f64
+    }
+
     /// Every hit along the ray for t in [0, inf), sorted by t (the ray's
     /// interval is applied by the checks, which need hits just outside it).
     pub fn all_hits(&self, ray: &Ray) -> Vec<BruteHit> {
