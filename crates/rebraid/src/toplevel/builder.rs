@@ -152,7 +152,8 @@ impl RefBudget {
 pub fn placement_overlap(refs: &[BuildRef]) -> f64 {
     let all = refs.iter().fold(Aabb::EMPTY, |a, r| a.union(r.bounds));
     let area = all.half_area() as f64;
-    if !(area > 0.0) {
+    // Also catches NaN.
+    if area.is_nan() || area <= 0.0 {
         return 0.0;
     }
     refs.iter()
@@ -971,20 +972,22 @@ fn build_list(
         n = opened;
         (bounds, cbounds) = list_bounds(&list[..n], n > ctx.params.parallel_threshold);
     }
-    if n == 2 && ctx.params.max_leaf_refs == 1 && depth < MEDIAN_FROM_DEPTH {
-        if let Some(axis) = first_usable_axis(&cbounds) {
-            // What the binned sweep below decides for two refs, without it:
-            // on every usable axis each side holds one ref at the same cost
-            // (a sum of the same two terms), so the sweep keeps the lowest
-            // usable axis, and the ref of lower centroid goes left. Half of
-            // a top-level tree's inner nodes hold two refs.
-            if list[1].bounds.center()[axis] < list[0].bounds.center()[axis] {
-                list.swap(0, 1);
-            }
-            return split_and_recurse(
-                ctx, list, scratch, 2, 1, desc, desc_first, first, depth, bounds,
-            );
+    // What the binned sweep below decides for two refs, without it: on
+    // every usable axis each side holds one ref at the same cost (a sum of
+    // the same two terms), so the sweep keeps the lowest usable axis, and
+    // the ref of lower centroid goes left. Half of a top-level tree's inner
+    // nodes hold two refs.
+    if n == 2
+        && ctx.params.max_leaf_refs == 1
+        && depth < MEDIAN_FROM_DEPTH
+        && let Some(axis) = first_usable_axis(&cbounds)
+    {
+        if list[1].bounds.center()[axis] < list[0].bounds.center()[axis] {
+            list.swap(0, 1);
         }
+        return split_and_recurse(
+            ctx, list, scratch, 2, 1, desc, desc_first, first, depth, bounds,
+        );
     }
     let split = find_split(ctx, &list[..n], &cbounds, depth);
     // A leaf of several refs when the SAH prefers it: the refs' costs as seen
