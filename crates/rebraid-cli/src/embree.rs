@@ -125,6 +125,12 @@ fn new_device(max_isa: EmbreeIsa) -> anyhow::Result<(Device, Arc<AtomicIsize>)> 
             EmbreeIsa::Avx2 => Isa::Avx2,
             EmbreeIsa::Sse42 => Isa::Sse4_2,
         },
+        // Embree's own log level (2 prints each BVH's statistics after its
+        // build: nodes, fill, SAH), for comparing its trees with ours.
+        verbose: std::env::var("REBRAID_EMBREE_VERBOSE")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0),
         ..Config::default()
     };
     let device =

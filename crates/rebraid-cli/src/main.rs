@@ -774,7 +774,15 @@ fn worker_row(mut cmd: std::process::Command, what: &str) -> anyhow::Result<Benc
             String::from_utf8_lossy(&out.stderr).trim()
         );
     }
-    serde_json::from_slice(&out.stdout).with_context(|| format!("reading the {what}'s row"))
+    // The row is the last line; anything before it is Embree's own log
+    // (`REBRAID_EMBREE_VERBOSE`), passed on to our stderr.
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stdout = stdout.trim_end();
+    let (log, row) = stdout.rsplit_once('\n').unwrap_or(("", stdout));
+    if !log.is_empty() {
+        eprintln!("{log}");
+    }
+    serde_json::from_str(row).with_context(|| format!("reading the {what}'s row"))
 }
 
 /// Our rows of one cycle beside Embree's, each (threads, mode) built and
@@ -877,8 +885,17 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
             overlap
         );
         println!(
-            "  {:<10} {:>10} {:>10} {:>9} {:>10} {:>9} {:>10} {:>9} {:>9}",
-            "mode", "build ms", "SAH", "MB", "top nodes", "top depth", "refs", "opened", "capacity"
+            "  {:<10} {:>10} {:>10} {:>9} {:>10} {:>9} {:>10} {:>9} {:>9} {:>9}",
+            "mode",
+            "build ms",
+            "SAH",
+            "MB",
+            "top nodes",
+            "top depth",
+            "refs",
+            "opened",
+            "capacity",
+            "wide SAH"
         );
         let mut per_mode = Vec::new();
         let sets = match &a.visits {
@@ -900,7 +917,7 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
             let st = scene.stats();
             let top = st.top.clone().unwrap_or_default();
             println!(
-                "  {:<10} {:>10.1} {:>10.2} {:>9.1} {:>10} {:>9} {:>10} {:>9} {:>9}",
+                "  {:<10} {:>10.1} {:>10.2} {:>9.1} {:>10} {:>9} {:>10} {:>9} {:>9} {:>9.3}",
                 mode.name(),
                 rep.total_ms,
                 st.sah_cost,
@@ -909,7 +926,8 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
                 st.top_depth,
                 top.refs_final,
                 top.nodes_opened,
-                top.capacity
+                top.capacity,
+                st.wide_sah_cost
             );
             let mut visits = serde_json::Value::Null;
             if let Some(sets) = &sets {
@@ -936,6 +954,7 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
                 "build_ms_objects": rep.object_build_ms,
                 "build_ms_top": rep.top_build_ms,
                 "sah_cost": st.sah_cost,
+                "wide_sah_cost": st.wide_sah_cost,
                 "bytes": st.bytes,
                 "top_nodes": st.top_nodes,
                 "top_depth": st.top_depth,

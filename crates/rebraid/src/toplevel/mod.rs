@@ -1630,6 +1630,53 @@ impl TopLevelAccel {
         walk.best.is_some()
     }
 
+    /// Embree's SAH statistic of the wide tree as traversed (see
+    /// [`crate::bvh::wide::wide_sah_sum`]): the top level's 8-wide nodes,
+    /// the leaf blocks copied into it, and from each entry the object's
+    /// wide nodes and blocks (an instanced object's boxes by their world
+    /// boxes). An entry that starts at an object node counts that node's
+    /// test at its top-level slot box. 0 without a wide layout.
+    pub fn wide_sah_cost(&self) -> f64 {
+        use crate::bvh::wide::{wide_root_area, wide_sah_sum};
+        let Some(top) = &self.wide else { return 0.0 };
+        let root_area = wide_root_area(top);
+        if root_area <= 0.0 {
+            return 0.0;
+        }
+        let blocks = |c: u32| decode_leaf(c).1 as f64;
+        let world_area = |b: &Aabb| b.half_area() as f64;
+        let mut top_leaf = |c: u32, a: f64| -> f64 {
+            let (first, count) = decode_leaf(c);
+            if first >= self.block_base {
+                return a * count as f64;
+            }
+            let mut sum = 0.0;
+            for e in &self.entries[first as usize..(first + count) as usize] {
+                let ow = self
+                    .objects
+                    .get(e.object as usize)
+                    .and_then(|o| o.as_deref())
+                    .and_then(|o| o.wide.as_ref());
+                let xf = (e.instance != INVALID_ID).then(|| &self.instances[e.instance as usize]);
+                let placed_area = |b: &Aabb| match xf {
+                    Some(xf) => xf.world_box(b).half_area() as f64,
+                    None => b.half_area() as f64,
+                };
+                sum += match ow {
+                    // No wide layout: one test, not followed further.
+                    None => a,
+                    Some(_) if e.wide == WIDE_EMPTY => a,
+                    Some(_) if is_leaf_ref(e.wide) => a * blocks(e.wide),
+                    Some(ow) => {
+                        wide_sah_sum(&ow.wide, e.wide, a, &placed_area, &mut |c, a| a * blocks(c))
+                    }
+                };
+            }
+            sum
+        };
+        wide_sah_sum(top, 0, root_area, &world_area, &mut top_leaf) / root_area
+    }
+
     /// The SAH statistic of the tree as traversed: from the top-level root
     /// down into the shared object nodes (world-space boxes; a ref's node is
     /// counted once, as the top-level leaf that tests its box). It walks the
