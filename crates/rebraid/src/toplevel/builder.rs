@@ -108,8 +108,9 @@ pub enum RefBudget {
     /// of `embree-flat`'s, but its two-thread build fell to 0.92 of
     /// `embree-two-level`'s (1.27 in the tenth run): the top level's time
     /// grows with its refs (library: 141-181 -> 260-300 ms of 1.0-1.2 s,
-    /// one thread), and [`super::TopLevelAccel::new`], most of it at two
-    /// threads, runs on one thread. Fixed budgets on the other scenes:
+    /// one thread), and its larger part at two threads,
+    /// [`super::TopLevelAccel::new`], runs on one. Fixed budgets on the
+    /// other scenes:
     /// 0.06 per primitive cut diffuse instructions by 2.5% on openarena,
     /// 1.1% on ravenbridge, 2.7% on cocoa, none on samurai or the engine;
     /// 0.2 cut them by 7-10% on the engine, cocoa and nexuiz for 3-5 times
