@@ -106,6 +106,23 @@ impl Aabb {
         e.x * e.y + e.y * e.z + e.z * e.x
     }
 
+    /// The sum of the boxes' half areas over the half area of their union:
+    /// about how many of them cover a point of it (1 for boxes side by
+    /// side, more as they overlap; 0 when the union has no area). The
+    /// scene's "overlap" ([`crate::SceneDesc::overlap_ratio`]) and the
+    /// re-braiding budget's ([`crate::toplevel::builder::placement_overlap`]).
+    pub fn overlap_ratio(boxes: impl IntoIterator<Item = Aabb>) -> f64 {
+        let (all, sum) = boxes.into_iter().fold((Aabb::EMPTY, 0.0f64), |(u, s), b| {
+            (u.union(b), s + b.half_area() as f64)
+        });
+        let area = all.half_area() as f64;
+        // Also catches NaN.
+        if area.is_nan() || area <= 0.0 {
+            return 0.0;
+        }
+        sum / area
+    }
+
     /// The axis (0, 1, 2) along which the box is longest; the first one on ties.
     #[inline]
     pub fn largest_axis(&self) -> usize {

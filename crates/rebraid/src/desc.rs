@@ -81,12 +81,7 @@ impl SceneDesc {
     /// Sum of the placements' box surface areas over the scene box's: the
     /// "overlap" of `shared/scenes/README.md`. 1 or below means little overlap.
     pub fn overlap_ratio(&self) -> f64 {
-        let (boxes, all) = self.world_boxes();
-        let a = all.half_area() as f64;
-        if a <= 0.0 {
-            return 0.0;
-        }
-        boxes.iter().map(|b| b.half_area() as f64).sum::<f64>() / a
+        Aabb::overlap_ratio(self.world_boxes().0)
     }
 
     /// Every instance transform world-to-object invertible and finite, every

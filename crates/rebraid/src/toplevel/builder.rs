@@ -151,19 +151,9 @@ impl RefBudget {
     }
 }
 
-/// The sum of the refs' box half areas over the half area of their union:
-/// 1 for placements side by side, more as they overlap (0 without area).
+/// How much the refs' boxes overlap ([`Aabb::overlap_ratio`]).
 pub fn placement_overlap(refs: &[BuildRef]) -> f64 {
-    let all = refs.iter().fold(Aabb::EMPTY, |a, r| a.union(r.bounds));
-    let area = all.half_area() as f64;
-    // Also catches NaN.
-    if area.is_nan() || area <= 0.0 {
-        return 0.0;
-    }
-    refs.iter()
-        .map(|r| r.bounds.half_area() as f64)
-        .sum::<f64>()
-        / area
+    Aabb::overlap_ratio(refs.iter().map(|r| r.bounds))
 }
 
 /// Parameters of the top-level build.

@@ -1662,10 +1662,9 @@ impl TopLevelAccel {
                     Some(xf) => xf.world_box(b).half_area() as f64,
                     None => b.half_area() as f64,
                 };
-                sum += match ow {
+                sum += match ow.filter(|_| e.wide != WIDE_EMPTY) {
                     // No wide layout: one test, not followed further.
                     None => a,
-                    Some(_) if e.wide == WIDE_EMPTY => a,
                     Some(_) if is_leaf_ref(e.wide) => a * blocks(e.wide),
                     Some(ow) => {
                         wide_sah_sum(&ow.wide, e.wide, a, &placed_area, &mut |c, a| a * blocks(c))

@@ -273,8 +273,7 @@ impl World {
                 *b = b.grow(v);
             }
         }
-        let all = boxes.values().fold(Aabb::EMPTY, |a, b| a.union(*b));
-        boxes.values().map(|b| b.half_area() as f64).sum::<f64>() / all.half_area() as f64
+        Aabb::overlap_ratio(boxes.into_values())
     }
 
     /// Every hit along the ray for t in [0, inf), sorted by t (the ray's
