@@ -32,6 +32,7 @@ pub mod animation;
 pub mod bvh;
 pub mod desc;
 pub mod error;
+mod huge_pages;
 pub mod mesh;
 pub mod procedural;
 pub mod procedural_dynamic;
