@@ -80,7 +80,7 @@ struct SceneOpts {
     #[arg(long)]
     budget_min: Option<usize>,
     /// Re-braiding budget: the per-primitive term grows by the placements'
-    /// overlap over this when above 1 (default 0: off, as Embree; 15 measured).
+    /// overlap over this when above 1 (default 15; 0: off, as Embree).
     #[arg(long)]
     budget_overlap_unit: Option<f32>,
     /// Do not open object BVHs through instance transforms (Embree's behaviour).

@@ -96,25 +96,25 @@ pub enum RefBudget {
     /// more refs buy nothing but build time. 0 turns the scaling off (as
     /// Embree).
     ///
-    /// Off by default (0) until the top level's build is cheaper. Measured
-    /// (session 25, `docs/performance.md`) with 0.03 per primitive and a
-    /// unit of 15, which scales only the two shared scenes whose
-    /// placements overlap most, nexuiz (overlap 21.7: 0.0435 per
-    /// primitive) and the library (24.9 at scale 3: 0.05): instructions
+    /// The default, 0.03 per primitive and a unit of 15, scales only the
+    /// two shared scenes whose placements overlap most: nexuiz (overlap
+    /// 21.7: 0.0435 per primitive) and the library (24.9 at scale 3: 0.05).
+    /// Measured (sessions 25 and 26, `docs/performance.md`): instructions
     /// per re-braided diffuse ray (callgrind) nexuiz 1,795.6 -> 1,714.8,
     /// library 1,141.5 -> about 1,015 (0.045-0.075 per primitive all gave
-    /// 1,015-1,019); nexuiz shadow rays 952.7 -> 970.7. In the figure's
-    /// run the library's diffuse rays rose from 0.72 (tenth run) to 0.79
-    /// of `embree-flat`'s, but its two-thread build fell to 0.92 of
-    /// `embree-two-level`'s (1.27 in the tenth run): the top level's time
-    /// grows with its refs (library: 141-181 -> 260-300 ms of 1.0-1.2 s,
-    /// one thread), and its larger part at two threads,
-    /// [`super::TopLevelAccel::new`], runs on one. Fixed budgets on the
-    /// other scenes:
-    /// 0.06 per primitive cut diffuse instructions by 2.5% on openarena,
-    /// 1.1% on ravenbridge, 2.7% on cocoa, none on samurai or the engine;
-    /// 0.2 cut them by 7-10% on the engine, cocoa and nexuiz for 3-5 times
-    /// the top level's build time.
+    /// 1,015-1,019); nexuiz shadow rays 952.7 -> 970.7. One thread, against
+    /// `embree-flat` (session 26, the same binary with units 15 and 0):
+    /// library diffuse 0.94 against 0.80, nexuiz 0.82 against 0.78. The
+    /// top level's time grows with its refs (library: 155 -> 241 ms of
+    /// about 1.05 s, one thread): session 25 turned the scaling off when
+    /// the library's two-thread build fell to 0.92 of `embree-two-level`'s;
+    /// with [`super::TopLevelAccel::new`] in parallel and its copied blocks
+    /// on huge pages (session 26) it stands at 1.03 (one thread) and 1.29
+    /// (two). Fixed budgets on the other scenes: 0.06 per primitive cut
+    /// diffuse instructions by 2.5% on openarena, 1.1% on ravenbridge, 2.7%
+    /// on cocoa, none on samurai or the engine; 0.2 cut them by 7-10% on
+    /// the engine, cocoa and nexuiz for 3-5 times the top level's build
+    /// time.
     Scaled {
         min: usize,
         per_initial_ref: f32,
@@ -235,7 +235,7 @@ impl Default for RebraidParams {
                 min: 1000,
                 per_initial_ref: 2.0,
                 per_primitive: 0.03,
-                overlap_unit: 0.0,
+                overlap_unit: 15.0,
             },
             bins: 32,
             short_list: 64,
