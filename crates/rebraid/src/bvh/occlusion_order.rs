@@ -146,8 +146,8 @@ fn order_for_occlusion_from<const W: usize>(
         }
         return stats;
     }
-    // Large trees (a re-braided top level: 40-50 thousand nodes for the
-    // library scene at 3M triangles) level by level from the deepest, the
+    // Large trees (a re-braided top level: tens of thousands of nodes for
+    // the library scene at 3M triangles) level by level from the deepest, the
     // nodes of a level in parallel: each node needs only its children's
     // stats, from deeper levels. Same answers as the sweep above.
     let mut depth = vec![0u32; len];
