@@ -2,8 +2,9 @@
 //!
 //! A build writes most of its memory once, into buffers it has just
 //! allocated, and every 4 KiB page of them is a page fault the kernel
-//! answers by zeroing the page: `perf` put those faults at 18-28% of the
-//! library scene's whole build (session 25, 26). Where the kernel's
+//! answers by zeroing the page: `perf` put those faults at 18.6% of the
+//! library scene's build (session 25) and the zeroing at 28.6% of a whole
+//! `rebraid bench library --scale 3` run (session 26). Where the kernel's
 //! transparent huge pages are in `madvise` mode (Debian's default, and this
 //! machine's), memory is backed by 2 MiB pages only where it was advised,
 //! which Embree does for every allocation of its BVHs of 2 MiB or more
