@@ -202,17 +202,18 @@ pub fn make_ray_sets(
     ))
 }
 
-/// Inner nodes and leaves visited per ray (top level and objects
-/// together), for the primary, shadow and diffuse sets, ray by ray through
-/// the scene's counted queries.
-pub fn visits_per_ray(scene: &Scene, sets: &RaySets) -> [(f64, f64); 3] {
-    let mut out = [(0.0, 0.0); 3];
+/// Inner nodes, leaves and entries visited per ray (top level and objects
+/// together; entries are the top-level leaves that entered an object BVH,
+/// counted among the leaves too), for the primary, shadow and diffuse sets,
+/// ray by ray through the scene's counted queries.
+pub fn visits_per_ray(scene: &Scene, sets: &RaySets) -> [[f64; 3]; 3] {
+    let mut out = [[0.0; 3]; 3];
     for (k, rays) in [&sets.primary, &sets.shadow, &sets.diffuse]
         .into_iter()
         .enumerate()
     {
         // Summed in `u64` ray by ray: the counters are `u32`.
-        let (mut inner, mut leaves) = (0u64, 0u64);
+        let mut sum = [0u64; 3];
         for ray in rays {
             let mut c = rebraid::bvh::TraversalCounters::default();
             if k == 1 {
@@ -220,11 +221,12 @@ pub fn visits_per_ray(scene: &Scene, sets: &RaySets) -> [(f64, f64); 3] {
             } else {
                 scene.intersect_counted(ray, &mut c);
             }
-            inner += u64::from(c.inner_visited);
-            leaves += u64::from(c.leaves_visited);
+            sum[0] += u64::from(c.inner_visited);
+            sum[1] += u64::from(c.leaves_visited);
+            sum[2] += u64::from(c.entries_visited);
         }
         let n = rays.len().max(1) as f64;
-        out[k] = (inner as f64 / n, leaves as f64 / n);
+        out[k] = sum.map(|x| x as f64 / n);
     }
     out
 }

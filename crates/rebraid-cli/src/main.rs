@@ -336,8 +336,9 @@ struct StatsArgs {
     json: Option<PathBuf>,
     /// Also trace `bench`'s primary, shadow and diffuse rays from a
     /// WIDTHxHEIGHT image (e.g. `480x270`) and report each mode's inner
-    /// nodes and leaves visited per ray (top level and objects together):
-    /// where a mode's traversal time goes, independent of the machine.
+    /// nodes and leaves visited per ray (top level and objects together),
+    /// and of the leaves the entries into object BVHs: where a mode's
+    /// traversal time goes, independent of the machine.
     #[arg(long, value_name = "WIDTHxHEIGHT")]
     visits: Option<String>,
     #[command(flatten)]
@@ -933,19 +934,22 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
             if let Some(sets) = &sets {
                 let v = bench::visits_per_ray(&scene, sets);
                 visits = serde_json::json!({
-                    "primary": [v[0].0, v[0].1],
-                    "shadow": [v[1].0, v[1].1],
-                    "diffuse": [v[2].0, v[2].1],
+                    "primary": v[0],
+                    "shadow": v[1],
+                    "diffuse": v[2],
                 });
                 visit_lines.push(format!(
-                    "  {:<10} {:>9.2} {:>8.2} {:>9.2} {:>8.2} {:>9.2} {:>8.2}",
+                    "  {:<10} {:>9.2} {:>7.2} {:>7.2} {:>9.2} {:>7.2} {:>7.2} {:>9.2} {:>7.2} {:>7.2}",
                     mode.name(),
-                    v[0].0,
-                    v[0].1,
-                    v[1].0,
-                    v[1].1,
-                    v[2].0,
-                    v[2].1
+                    v[0][0],
+                    v[0][1],
+                    v[0][2],
+                    v[1][0],
+                    v[1][1],
+                    v[1][2],
+                    v[2][0],
+                    v[2][1],
+                    v[2][2]
                 ));
             }
             per_mode.push(serde_json::json!({
@@ -967,10 +971,21 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
             }));
         }
         if !visit_lines.is_empty() {
-            println!("  visits per ray (inner nodes, leaves; top level and objects together):");
             println!(
-                "  {:<10} {:>9} {:>8} {:>9} {:>8} {:>9} {:>8}",
-                "mode", "primary", "leaves", "shadow", "leaves", "diffuse", "leaves"
+                "  visits per ray (inner nodes, leaves, and of the leaves the entries into objects; top level and objects together):"
+            );
+            println!(
+                "  {:<10} {:>9} {:>7} {:>7} {:>9} {:>7} {:>7} {:>9} {:>7} {:>7}",
+                "mode",
+                "primary",
+                "leaves",
+                "entries",
+                "shadow",
+                "leaves",
+                "entries",
+                "diffuse",
+                "leaves",
+                "entries"
             );
             for l in &visit_lines {
                 println!("{l}");

@@ -580,16 +580,24 @@ fn stats_visits_per_ray() {
     assert!(out.contains("visits per ray"), "{out}");
     let v: Value = serde_json::from_str(std::fs::read_to_string(&json).unwrap().trim()).unwrap();
     let modes = v["modes"].as_array().expect("modes array");
-    let visits = |i: usize, set: &str| -> (f64, f64) {
+    let visits = |i: usize, set: &str| -> (f64, f64, f64) {
         let p = &modes[i]["visits_per_ray"][set];
-        (p[0].as_f64().unwrap(), p[1].as_f64().unwrap())
+        let x = |k: usize| p[k].as_f64().unwrap();
+        (x(0), x(1), x(2))
     };
     for (i, m) in modes.iter().enumerate() {
         for set in ["primary", "shadow", "diffuse"] {
-            let (inner, leaves) = visits(i, set);
+            let (inner, leaves, entries) = visits(i, set);
             assert!(inner >= 1.0 && leaves > 0.0, "{set}: {m}");
+            // Entries are leaves too; the flat mode has none.
+            assert!((0.0..=leaves).contains(&entries), "{set}: {m}");
+            if m["mode"] == "flat" {
+                assert_eq!(entries, 0.0, "{set}: {m}");
+            }
         }
     }
+    // The two-level mode enters an object BVH for every hit it finds.
+    assert!(visits(1, "primary").2 > 0.0, "{v}");
     // The library's objects overlap: a two-level walk enters many more of
     // them than the re-braided one, which opens the overlapping objects.
     assert!(visits(1, "primary").0 > visits(2, "primary").0, "{v}");

@@ -703,6 +703,7 @@ fn walk_ray<const ANY: bool, F: TesterFactory>(
     state.walk_from::<ANY, F>(a, &wide.nodes, factory, &world, 0, counters);
     counters.inner_visited += state.inner.inner_visited;
     counters.leaves_visited += state.inner.leaves_visited;
+    counters.entries_visited += state.inner.entries_visited;
     state.best
 }
 
@@ -857,6 +858,7 @@ impl<'r, T: BoxTester<8> + Copy, const N: usize> RayState<'r, T, N> {
         t_max: f32,
     ) -> Option<(f32, f32, f32, u32)> {
         let ray = self.ray;
+        self.inner.entries_visited += 1;
         let r = &a.entries[ri as usize];
         let obj = a
             .objects
