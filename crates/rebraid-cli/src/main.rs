@@ -938,19 +938,11 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
                     "shadow": v[1],
                     "diffuse": v[2],
                 });
-                visit_lines.push(format!(
-                    "  {:<10} {:>9.2} {:>7.2} {:>7.2} {:>9.2} {:>7.2} {:>7.2} {:>9.2} {:>7.2} {:>7.2}",
-                    mode.name(),
-                    v[0][0],
-                    v[0][1],
-                    v[0][2],
-                    v[1][0],
-                    v[1][1],
-                    v[1][2],
-                    v[2][0],
-                    v[2][1],
-                    v[2][2]
-                ));
+                let mut line = format!("  {:<10}", mode.name());
+                for [inner, leaves, entries] in v {
+                    line += &format!(" {inner:>9.2} {leaves:>7.2} {entries:>7.2}");
+                }
+                visit_lines.push(line);
             }
             per_mode.push(serde_json::json!({
                 "mode": mode.name(),
@@ -974,19 +966,11 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
             println!(
                 "  visits per ray (inner nodes, leaves, and of the leaves the entries into objects; top level and objects together):"
             );
-            println!(
-                "  {:<10} {:>9} {:>7} {:>7} {:>9} {:>7} {:>7} {:>9} {:>7} {:>7}",
-                "mode",
-                "primary",
-                "leaves",
-                "entries",
-                "shadow",
-                "leaves",
-                "entries",
-                "diffuse",
-                "leaves",
-                "entries"
-            );
+            let mut header = format!("  {:<10}", "mode");
+            for set in ["primary", "shadow", "diffuse"] {
+                header += &format!(" {set:>9} {:>7} {:>7}", "leaves", "entries");
+            }
+            println!("{header}");
             for l in &visit_lines {
                 println!("{l}");
             }
