@@ -97,6 +97,11 @@ struct SceneOpts {
     /// does not move).
     #[arg(long)]
     no_bake_instances: bool,
+    /// Re-braiding: keep the object leaves that top-level leaves enter
+    /// through an instance as entries (by default they are copied into the
+    /// top level in world space).
+    #[arg(long)]
+    no_inline_instanced_leaves: bool,
     /// Largest leaf of object (and flat) BVHs.
     #[arg(long)]
     max_leaf: Option<u32>,
@@ -154,6 +159,7 @@ impl SceneOpts {
         }
         r.open_instances = !self.no_open_instances;
         r.bake_single_instances = !self.no_bake_instances;
+        r.inline_instanced_leaves = !self.no_inline_instanced_leaves;
         r.open_only_overlapping = self.open_only_overlapping;
         if let Some(k) = self.open_rounds {
             r.open_rounds = k;
@@ -183,6 +189,10 @@ impl SceneOpts {
             ("--no-open-instances", self.no_open_instances),
             ("--open-only-overlapping", self.open_only_overlapping),
             ("--no-bake-instances", self.no_bake_instances),
+            (
+                "--no-inline-instanced-leaves",
+                self.no_inline_instanced_leaves,
+            ),
         ];
         v.extend(flags.iter().filter(|f| f.1).map(|f| f.0.to_string()));
         let values = [

@@ -617,11 +617,13 @@ fn pulled_entry_nodes_answer_right_and_fill_the_top_level() {
     assert!(pulled_anywhere > 0, "nothing pulled in any configuration");
 }
 
-/// Copying the blocks of directly placed object leaves into the top level
-/// (`RebraidParams::inline_leaf_blocks`): the same answers as brute force
-/// with and without it (with and without pulled entry nodes), the copies
-/// checked against the objects' blocks by `validate`, and no top-level slot
-/// left entering a direct object leaf through an entry.
+/// Copying the blocks of object leaves into the top level
+/// (`RebraidParams::inline_leaf_blocks`, and with
+/// `inline_instanced_leaves` the instanced ones in world space): the same
+/// answers as brute force with and without it (with and without pulled
+/// entry nodes), the copies checked against the objects' (transformed)
+/// blocks by `validate`, and no top-level slot left entering a leaf it
+/// could copy through an entry.
 #[test]
 fn inlined_leaf_blocks_answer_right() {
     use rebraid::bvh::wide::{decode_leaf, is_leaf_ref};
@@ -629,10 +631,17 @@ fn inlined_leaf_blocks_answer_right() {
         let model = overlapping_model(seed);
         let world = model.world();
         let rays = random_rays(&mut rng(seed + 70), &world, 250, SCENE_LO, SCENE_HI);
-        for (inline, pull) in [(false, false), (true, false), (true, true)] {
-            let what = format!("seed {seed} inline {inline} pull {pull}");
+        for (inline, pull, instanced) in [
+            (false, false, false),
+            (true, false, false),
+            (true, true, false),
+            (true, false, true),
+            (true, true, true),
+        ] {
+            let what = format!("seed {seed} inline {inline} pull {pull} instanced {instanced}");
             let mut scene = model.to_scene(rebraided(RebraidParams {
                 inline_leaf_blocks: inline,
+                inline_instanced_leaves: instanced,
                 pull_entry_nodes: pull,
                 ..Default::default()
             }));
@@ -658,12 +667,66 @@ fn inlined_leaf_blocks_answer_right() {
                     }
                     let e = t.entries[decode_leaf(c).0 as usize];
                     assert!(
-                        e.instance != INVALID_ID || !is_leaf_ref(e.wide),
-                        "{what}: a direct leaf entered through an entry"
+                        (e.instance != INVALID_ID && !instanced) || !is_leaf_ref(e.wide),
+                        "{what}: a leaf entered through an entry"
                     );
                 }
             }
+            // Instanced copies exist exactly when asked for.
+            let instanced_copies = t
+                .block_entry
+                .iter()
+                .filter(|&&ri| t.entries[ri as usize].instance != INVALID_ID)
+                .count();
+            assert_eq!(instanced_copies > 0, instanced, "{what}: {instanced_copies}");
         }
+    }
+}
+
+/// An instanced leaf copied into the top level in world space
+/// (`RebraidParams::inline_instanced_leaves`) reports what the same leaf
+/// reports through its entry: the same placement and primitive, `t`, `u`
+/// and `v` within rounding, and the normal at the entry path's length
+/// (its world cross product rescaled), mirroring instances included.
+#[test]
+fn instanced_leaf_copies_report_what_their_entries_report() {
+    for seed in [5u64, 6, 7] {
+        let model = overlapping_model(seed);
+        let world = model.world();
+        let rays = random_rays(&mut rng(seed + 90), &world, 400, SCENE_LO, SCENE_HI);
+        let scene = |instanced: bool| {
+            let mut s = model.to_scene(rebraided(RebraidParams {
+                inline_instanced_leaves: instanced,
+                ..Default::default()
+            }));
+            s.commit().unwrap();
+            s
+        };
+        let (entered, copied) = (scene(false), scene(true));
+        let mut compared = 0;
+        for r in &rays {
+            let (Some(a), Some(b)) = (entered.intersect(r), copied.intersect(r)) else {
+                continue;
+            };
+            if (a.object_id, a.instance_id, a.prim_id) != (b.object_id, b.instance_id, b.prim_id)
+            {
+                // A tie or a grazing hit decided by rounding.
+                continue;
+            }
+            // Barycentrics computed in another space differ by more than
+            // `t` does on long rays to small triangles.
+            let t_close = (a.t - b.t).abs() <= 1e-4 * a.t.abs().max(1.0);
+            let uv_close = (a.u - b.u).abs() <= 2e-3 && (a.v - b.v).abs() <= 2e-3;
+            assert!(t_close && uv_close, "seed {seed}: {a:?} {b:?}");
+            assert!(
+                (a.normal - b.normal).length() <= 1e-4 * a.normal.length(),
+                "seed {seed}: normal {:?} through the entry, {:?} from the copy",
+                a.normal,
+                b.normal
+            );
+            compared += (a.instance_id != INVALID_ID) as usize;
+        }
+        assert!(compared > 20, "seed {seed}: {compared} instanced hits compared");
     }
 }
 

@@ -125,6 +125,23 @@ impl Triangle4 {
         })
     }
 
+    /// The block with every vertex moved by `xf` (each vertex transformed
+    /// on its own, as a world-space build transforms it, so that vertices
+    /// neighbouring triangles share stay shared); padding lanes stay NaN.
+    #[inline]
+    pub fn transformed(&self, xf: &glam::Affine3A) -> Self {
+        let mut out = *self;
+        for (i, v) in self.v.iter().enumerate() {
+            for lane in 0..4 {
+                let p = xf.transform_point3(Vec3::new(v[0][lane], v[1][lane], v[2][lane]));
+                for axis in 0..3 {
+                    out.v[i][axis][lane] = p[axis];
+                }
+            }
+        }
+        out
+    }
+
     /// Vertices of lane `lane`.
     #[inline]
     pub fn triangle(&self, lane: usize) -> [Vec3; 3] {

@@ -869,6 +869,7 @@ impl Scene {
                 kernel: self.params.kernel.unwrap_or_else(Kernel::best),
                 pull_entry_nodes: params.open && params.pull_entry_nodes,
                 inline_leaf_blocks: params.inline_leaf_blocks,
+                inline_instanced_leaves: params.inline_instanced_leaves,
             },
             block_buffer,
         )

@@ -209,6 +209,12 @@ pub struct RebraidParams {
     /// directly into the top level, so that traversal tests them without
     /// entering the object (see [`super::TopLevelAccel::new`]).
     pub inline_leaf_blocks: bool,
+    /// With `inline_leaf_blocks`, copy the leaves that top-level leaves
+    /// enter through an instance too, their vertices transformed into
+    /// world space (see [`super::TopLevelAccel::new`]): a ray then tests
+    /// them as it tests a directly placed leaf's copy, without the entry,
+    /// the instance ray and its set-up.
+    pub inline_instanced_leaves: bool,
     /// Lists longer than this are opened, binned and partitioned with
     /// data-parallel loops, and their halves built as parallel tasks.
     pub parallel_threshold: usize,
@@ -244,6 +250,7 @@ impl Default for RebraidParams {
             open_only_overlapping: false,
             pull_entry_nodes: true,
             inline_leaf_blocks: true,
+            inline_instanced_leaves: true,
             parallel_threshold: 1024,
             bake_single_instances: true,
         }

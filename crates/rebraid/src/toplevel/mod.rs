@@ -340,6 +340,10 @@ pub struct TopLevelAccel {
     /// value instead of the entry, then the baked placements (about 15
     /// instructions of the 85 that made a hit record per ray, session 21).
     pub block_placement: Vec<(u32, u32)>,
+    /// Per block of `blocks`, the factor its hits' normals take (see
+    /// `TopLevelAccel::block_entry_normal_scale`): 1 but for instanced
+    /// leaves copied in world space.
+    pub block_normal_scale: Vec<f32>,
     /// Leaf indices from here on name `blocks`, below it `entries`.
     pub block_base: u32,
     /// The placements traced from world-space BVHs (objects that one
@@ -359,11 +363,15 @@ pub struct TopLevelLayout {
     pub pull_entry_nodes: bool,
     /// See [`RebraidParams::inline_leaf_blocks`].
     pub inline_leaf_blocks: bool,
+    /// See [`RebraidParams::inline_instanced_leaves`].
+    pub inline_instanced_leaves: bool,
 }
 
 /// Copy the triangle blocks of the object leaves that top-level leaves
 /// enter directly (one ref, no instance) into the top level, and point
 /// those leaves at the copies. Returns the blocks and the entry of each.
+/// With `instanced`, leaves entered through an instance are copied too,
+/// their vertices transformed into world space (see below).
 ///
 /// Re-braiding opens objects down to their leaves where they overlap (on
 /// the shared scenes 44-58% of the refs are object leaves, and on samurai
@@ -374,31 +382,45 @@ pub struct TopLevelLayout {
 /// a flat BVH's leaf costs. The copies cost 160 bytes per block and a copy
 /// per top-level build.
 ///
-/// Instanced leaves stay entries. Copying them too (a second range of leaf
-/// indices whose rays are transformed through the instance ray cache) made
-/// the instanced scenes slower: one copy per placement undoes the sharing
-/// that instancing gives the caches (paired A/B, 30 alternations: cocoa
-/// temple 0.92-0.99, ravenbridge 0.93-0.98, 2CylinderEngine 0.96-0.98).
+/// Instanced leaves: session 7 copied them in object space, their rays
+/// transformed through the instance ray cache as an entry's are, and the
+/// instanced scenes got slower (paired A/B, 30 alternations: cocoa temple
+/// 0.92-0.99, ravenbridge 0.93-0.98, 2CylinderEngine 0.96-0.98). Copied
+/// in world space (`instanced`), one copy per placement, they are tested
+/// with the world ray like a direct leaf's copy: no entry, no instance
+/// ray. The copy is one affine transform per vertex, as
+/// [`crate::mesh::MeshBvh::build_transformed`] bakes a placement.
 fn inline_leaf_blocks(
     wide: &mut WideBvh<8>,
     entries: &[RefEntry],
     objects: &[Option<Arc<ObjectBvh>>],
+    instances: &[InstanceXf],
+    instanced: bool,
     mut blocks: Vec<Triangle4>,
 ) -> (Vec<Triangle4>, Vec<u32>) {
     let block_base = entries.len();
-    // The direct object leaf a slot enters, as (entry, object blocks).
-    let direct_leaf = |c: u32| -> Option<(u32, &[Triangle4])> {
+    // The object leaf a slot enters, as (entry, object blocks, the
+    // instance's transform for a leaf entered through one).
+    type Copied<'a> = (u32, &'a [Triangle4], Option<&'a Affine3A>);
+    let copied_leaf = |c: u32| -> Option<Copied<'_>> {
         if !is_leaf_ref(c) || c == WIDE_EMPTY {
             return None;
         }
         let (ri, count) = decode_leaf(c);
         let e = &entries[ri as usize];
-        if count != 1 || e.instance != INVALID_ID || e.wide == WIDE_EMPTY || !is_leaf_ref(e.wide) {
+        if count != 1 || e.wide == WIDE_EMPTY || !is_leaf_ref(e.wide) {
             return None;
         }
+        let xf = if e.instance == INVALID_ID {
+            None
+        } else if instanced {
+            Some(&instances.get(e.instance as usize)?.object_to_world)
+        } else {
+            return None;
+        };
         let ow = objects.get(e.object as usize)?.as_deref()?.wide.as_ref()?;
         let (first, n) = decode_leaf(e.wide);
-        Some((ri, &ow.blocks[first as usize..(first + n) as usize]))
+        Some((ri, &ow.blocks[first as usize..(first + n) as usize], xf))
     };
     // Planned first, in slot order (which slots are copied and where),
     // then copied in parallel into one allocation: into the previous
@@ -407,18 +429,18 @@ fn inline_leaf_blocks(
     // monastery's 5,512 blocks; 36-175 ms for the library scene's 274,675
     // blocks at 3M triangles), and faults on two threads take half as long;
     // on huge pages (`crate::huge_pages`) a third as long again.
-    let mut plan: Vec<(u32, &[Triangle4])> = Vec::new();
+    let mut plan: Vec<Copied<'_>> = Vec::new();
     let mut total = block_base;
     for node in &mut wide.nodes {
         for slot in 0..node.child_count() {
-            let Some((ri, leaf)) = direct_leaf(node.child[slot]) else {
+            let Some((ri, leaf, xf)) = copied_leaf(node.child[slot]) else {
                 continue;
             };
             if total + leaf.len() > WIDE_MAX_PRIMITIVES {
                 // Leaf indices have 27 bits: the rest stay entries.
                 continue;
             }
-            plan.push((ri, leaf));
+            plan.push((ri, leaf, xf));
             node.child[slot] = encode_leaf(total as u32, leaf.len() as u32);
             total += leaf.len();
         }
@@ -450,9 +472,12 @@ fn inline_leaf_blocks(
     }
     pieces.into_par_iter().for_each(|(plan, d, e)| {
         let mut at = 0;
-        for &(ri, leaf) in plan {
+        for &(ri, leaf, xf) in plan {
             for (k, b) in leaf.iter().enumerate() {
-                d[at + k].write(*b);
+                d[at + k].write(match xf {
+                    None => *b,
+                    Some(xf) => b.transformed(xf),
+                });
                 e[at + k].write(ri);
             }
             at += leaf.len();
@@ -1439,7 +1464,14 @@ impl TopLevelAccel {
         let block_base = entries.len() as u32;
         let (blocks, block_entry) = match &mut wide {
             Some(w) if layout.inline_leaf_blocks => {
-                inline_leaf_blocks(w, &entries, &objects, block_buffer)
+                inline_leaf_blocks(
+                    w,
+                    &entries,
+                    &objects,
+                    &instances,
+                    layout.inline_instanced_leaves,
+                    block_buffer,
+                )
             }
             _ => Default::default(),
         };
@@ -1456,6 +1488,7 @@ impl TopLevelAccel {
             blocks,
             block_entry,
             block_placement: Vec::new(),
+            block_normal_scale: Vec::new(),
             block_base,
             baked: Vec::new(),
         };
@@ -1463,14 +1496,45 @@ impl TopLevelAccel {
         accel
     }
 
-    /// Fill `block_placement` from `block_entry` and the baked placements.
+    /// Fill `block_placement` and `block_normal_scale` from `block_entry`
+    /// and the baked placements.
     fn place_blocks(&mut self) {
         let placement: Vec<(u32, u32)> = self
             .block_entry
             .iter()
-            .map(|&ri| self.placement_of_slot(self.entries[ri as usize].object))
+            .map(|&ri| self.block_entry_placement(ri))
+            .collect();
+        let scale: Vec<f32> = self
+            .block_entry
+            .iter()
+            .map(|&ri| self.block_entry_normal_scale(ri))
             .collect();
         self.block_placement = placement;
+        self.block_normal_scale = scale;
+    }
+
+    /// The (object, instance) a hit on a block copied for entry `ri`
+    /// reports.
+    fn block_entry_placement(&self, ri: u32) -> (u32, u32) {
+        let e = &self.entries[ri as usize];
+        if e.instance == INVALID_ID {
+            self.placement_of_slot(e.object)
+        } else {
+            (e.object, e.instance)
+        }
+    }
+
+    /// What turns the world cross product of a block copied for entry `ri`
+    /// into the normal the entry's own path reports: 1 for a direct leaf;
+    /// for an instanced leaf copied in world space `|det|` of the
+    /// world-to-object transform, as the world cross product is `det(M)
+    /// M^-T n` and the entry's normal `sign(det M) M^-T n`.
+    fn block_entry_normal_scale(&self, ri: u32) -> f32 {
+        let e = &self.entries[ri as usize];
+        match self.instances.get(e.instance as usize) {
+            Some(xf) if e.instance != INVALID_ID => xf.world_to_object.matrix3.determinant().abs(),
+            _ => 1.0,
+        }
     }
 
     /// Name the last `baked.len()` slots of `objects` as the world-space
@@ -1617,9 +1681,14 @@ impl TopLevelAccel {
     #[inline(always)]
     fn make_hit(&self, (t, u, v, k, ri): RefHit) -> Hit {
         let (prim_id, normal, (object_id, instance_id)) = if ri == INLINE_HIT {
-            // A copied block: placed directly, a world-space normal.
+            // A copied block: world-space vertices, its normal scaled as its entry would report it.
             let (prim, normal) = block_hit_record(&self.blocks, k);
-            (prim, normal, self.block_placement[(k / 4) as usize])
+            let b = (k / 4) as usize;
+            (
+                prim,
+                normal * self.block_normal_scale[b],
+                self.block_placement[b],
+            )
         } else {
             let e = &self.entries[ri as usize];
             let obj = self
@@ -1845,6 +1914,7 @@ impl TopLevelAccel {
         tree.validate(&boxes)?;
         if self.block_entry.len() != self.blocks.len()
             || self.block_placement.len() != self.blocks.len()
+            || self.block_normal_scale.len() != self.blocks.len()
         {
             return Err("copied blocks and their entries differ in length".into());
         }
@@ -1854,19 +1924,21 @@ impl TopLevelAccel {
             .zip(&self.block_placement)
             .enumerate()
         {
-            let e = self
-                .entries
-                .get(ri as usize)
-                .ok_or_else(|| format!("copied block {b}: no entry {ri}"))?;
-            if placed != self.placement_of_slot(e.object) {
+            if self.entries.get(ri as usize).is_none() {
+                return Err(format!("copied block {b}: no entry {ri}"));
+            }
+            if placed != self.block_entry_placement(ri) {
                 return Err(format!(
-                    "copied block {b}: placed as {placed:?}, its entry's object slot {} places {:?}",
-                    e.object,
-                    self.placement_of_slot(e.object)
+                    "copied block {b}: placed as {placed:?}, its entry {ri} places {:?}",
+                    self.block_entry_placement(ri)
                 ));
             }
+            if self.block_normal_scale[b] != self.block_entry_normal_scale(ri) {
+                return Err(format!("copied block {b}: wrong normal scale"));
+            }
         }
-        // Each run of copied blocks is its entry's object leaf, bit for bit.
+        // Each run of copied blocks is its entry's object leaf, bit for bit
+        // (an instanced leaf's transformed into world space).
         let mut b = 0;
         while b < self.blocks.len() {
             let ri = self.block_entry[b];
@@ -1877,9 +1949,18 @@ impl TopLevelAccel {
                 .and_then(|o| o.as_deref())
                 .and_then(|o| o.wide.as_ref())
                 .ok_or_else(|| format!("copied block {b}: entry {ri} has no wide object"))?;
-            if e.instance != INVALID_ID || !is_leaf_ref(e.wide) || e.wide == WIDE_EMPTY {
-                return Err(format!("copied block {b}: entry {ri} is no direct leaf"));
+            if !is_leaf_ref(e.wide) || e.wide == WIDE_EMPTY {
+                return Err(format!("copied block {b}: entry {ri} is no leaf"));
             }
+            let xf = match e.instance {
+                INVALID_ID => None,
+                i => Some(
+                    self.instances
+                        .get(i as usize)
+                        .ok_or_else(|| format!("copied block {b}: no instance {i}"))?
+                        .object_to_world,
+                ),
+            };
             let (first, n) = decode_leaf(e.wide);
             // Bit for bit: padding lanes hold NaN vertices.
             let bits = |blocks: &[Triangle4]| {
@@ -1895,7 +1976,12 @@ impl TopLevelAccel {
                     .collect::<Vec<u32>>()
             };
             let copy = self.blocks.get(b..b + n as usize).map(bits);
-            if copy != Some(bits(&ow.blocks[first as usize..(first + n) as usize])) {
+            let leaf = &ow.blocks[first as usize..(first + n) as usize];
+            let want = match &xf {
+                None => bits(leaf),
+                Some(xf) => bits(&leaf.iter().map(|t| t.transformed(xf)).collect::<Vec<_>>()),
+            };
+            if copy != Some(want) {
                 return Err(format!(
                     "copied blocks at {b} differ from entry {ri}'s leaf"
                 ));
@@ -1991,5 +2077,6 @@ impl TopLevelAccel {
             + std::mem::size_of_val(self.blocks.as_slice())
             + std::mem::size_of_val(self.block_entry.as_slice())
             + std::mem::size_of_val(self.block_placement.as_slice())
+            + std::mem::size_of_val(self.block_normal_scale.as_slice())
     }
 }
