@@ -131,11 +131,10 @@ impl Triangle4 {
     #[inline]
     pub fn transformed(&self, xf: &glam::Affine3A) -> Self {
         let mut out = *self;
-        for (i, v) in self.v.iter().enumerate() {
-            for lane in 0..4 {
-                let p = xf.transform_point3(Vec3::new(v[0][lane], v[1][lane], v[2][lane]));
-                for axis in 0..3 {
-                    out.v[i][axis][lane] = p[axis];
+        for lane in 0..4 {
+            for (v, p) in out.v.iter_mut().zip(self.triangle(lane)) {
+                for (row, c) in v.iter_mut().zip(xf.transform_point3(p).to_array()) {
+                    row[lane] = c;
                 }
             }
         }
