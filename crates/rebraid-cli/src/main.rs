@@ -102,6 +102,10 @@ struct SceneOpts {
     /// top level in world space).
     #[arg(long)]
     no_inline_instanced_leaves: bool,
+    /// Re-braiding: graft object subtrees of at most this many triangles
+    /// that top-level leaves enter into the top level (0: none).
+    #[arg(long)]
+    graft_max_prims: Option<u32>,
     /// Largest leaf of object (and flat) BVHs.
     #[arg(long)]
     max_leaf: Option<u32>,
@@ -160,6 +164,9 @@ impl SceneOpts {
         r.open_instances = !self.no_open_instances;
         r.bake_single_instances = !self.no_bake_instances;
         r.inline_instanced_leaves = !self.no_inline_instanced_leaves;
+        if let Some(g) = self.graft_max_prims {
+            r.graft_max_prims = g;
+        }
         r.open_only_overlapping = self.open_only_overlapping;
         if let Some(k) = self.open_rounds {
             r.open_rounds = k;
@@ -204,6 +211,10 @@ impl SceneOpts {
                 self.budget_per_prim.map(|x| x.to_string()),
             ),
             ("budget-min", self.budget_min.map(|x| x.to_string())),
+            (
+                "graft-max-prims",
+                self.graft_max_prims.map(|x| x.to_string()),
+            ),
             (
                 "budget-overlap-unit",
                 self.budget_overlap_unit.map(|x| x.to_string()),

@@ -572,6 +572,8 @@ fn pulled_entry_nodes_answer_right_and_fill_the_top_level() {
             let mut scene = model.to_scene(rebraided(RebraidParams {
                 pull_entry_nodes: pull,
                 budget,
+                // Grafting replaces entries too (its own test below).
+                graft_max_prims: 0,
                 ..Default::default()
             }));
             scene.commit().unwrap();
@@ -678,8 +680,74 @@ fn inlined_leaf_blocks_answer_right() {
                 .iter()
                 .filter(|&&ri| t.entries[ri as usize].instance != INVALID_ID)
                 .count();
-            assert_eq!(instanced_copies > 0, instanced, "{what}: {instanced_copies}");
+            assert_eq!(
+                instanced_copies > 0,
+                instanced,
+                "{what}: {instanced_copies}"
+            );
         }
+    }
+}
+
+/// Object subtrees that top-level slots enter grafted into the top level
+/// (`RebraidParams::graft_max_prims`): the same answers as brute force at
+/// every graft size, with and without pulled entry nodes and copied
+/// leaves, a valid top level (`check_top`: every placement's primitives
+/// reachable once), and no slot left entering an inner object node of at
+/// most that many primitives.
+#[test]
+fn grafted_entries_answer_right() {
+    use rebraid::bvh::wide::{WIDE_EMPTY, decode_leaf, is_leaf_ref};
+    for seed in [5u64, 6] {
+        let model = overlapping_model(seed);
+        let world = model.world();
+        let rays = random_rays(&mut rng(seed + 110), &world, 250, SCENE_LO, SCENE_HI);
+        let mut entries_at = Vec::new();
+        for (graft, pull, inline) in [
+            (0, true, true),
+            (8, true, true),
+            (64, true, true),
+            (64, false, true),
+            (64, true, false),
+            (u32::MAX, true, true),
+        ] {
+            let what = format!("seed {seed} graft {graft} pull {pull} inline {inline}");
+            let mut scene = model.to_scene(rebraided(RebraidParams {
+                graft_max_prims: graft,
+                pull_entry_nodes: pull,
+                inline_leaf_blocks: inline,
+                // A small budget leaves inner object nodes of every size
+                // behind top-level leaves.
+                budget: RefBudget::Spare(40),
+                ..Default::default()
+            }));
+            scene.commit().unwrap();
+            let t = top(&scene);
+            check_top(t, &model, &what);
+            check_scene(&scene, &world, &rays, false, &what);
+            let mut inner_entries = 0;
+            for node in &t.wide.as_ref().expect("a top level").nodes {
+                for &c in &node.child[..node.child_count()] {
+                    if !is_leaf_ref(c) || decode_leaf(c).0 >= t.block_base {
+                        continue;
+                    }
+                    let (ri, _) = decode_leaf(c);
+                    let e = t.entries[ri as usize];
+                    if e.wide != WIDE_EMPTY && !is_leaf_ref(e.wide) {
+                        inner_entries += 1;
+                        assert!(
+                            t.entry_refs[ri as usize].prims > graft,
+                            "{what}: entry {ri} of {} primitives not grafted",
+                            t.entry_refs[ri as usize].prims
+                        );
+                    }
+                }
+            }
+            entries_at.push(inner_entries);
+        }
+        assert!(entries_at[0] > 0, "seed {seed}: no entries to graft");
+        assert!(entries_at[2] < entries_at[0], "seed {seed}: {entries_at:?}");
+        assert_eq!(entries_at[5], 0, "seed {seed}: entries left at any size");
     }
 }
 
@@ -708,8 +776,7 @@ fn instanced_leaf_copies_report_what_their_entries_report() {
             let (Some(a), Some(b)) = (entered.intersect(r), copied.intersect(r)) else {
                 continue;
             };
-            if (a.object_id, a.instance_id, a.prim_id) != (b.object_id, b.instance_id, b.prim_id)
-            {
+            if (a.object_id, a.instance_id, a.prim_id) != (b.object_id, b.instance_id, b.prim_id) {
                 // A tie or a grazing hit decided by rounding.
                 continue;
             }
@@ -726,7 +793,10 @@ fn instanced_leaf_copies_report_what_their_entries_report() {
             );
             compared += (a.instance_id != INVALID_ID) as usize;
         }
-        assert!(compared > 20, "seed {seed}: {compared} instanced hits compared");
+        assert!(
+            compared > 20,
+            "seed {seed}: {compared} instanced hits compared"
+        );
     }
 }
 

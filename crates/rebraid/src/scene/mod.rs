@@ -870,6 +870,11 @@ impl Scene {
                 pull_entry_nodes: params.open && params.pull_entry_nodes,
                 inline_leaf_blocks: params.inline_leaf_blocks,
                 inline_instanced_leaves: params.inline_instanced_leaves,
+                graft_max_prims: if params.open {
+                    params.graft_max_prims
+                } else {
+                    0
+                },
             },
             block_buffer,
         )

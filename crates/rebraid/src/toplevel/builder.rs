@@ -215,6 +215,11 @@ pub struct RebraidParams {
     /// them as it tests a directly placed leaf's copy, without the entry,
     /// the instance ray and its set-up.
     pub inline_instanced_leaves: bool,
+    /// Graft the object subtrees of at most this many primitives that
+    /// top-level leaves enter into the top level as copies of the object's
+    /// own nodes (0: none; see [`super::TopLevelAccel::new`]), so that a ray
+    /// reaching them walks on in the top level instead of entering.
+    pub graft_max_prims: u32,
     /// Lists longer than this are opened, binned and partitioned with
     /// data-parallel loops, and their halves built as parallel tasks.
     pub parallel_threshold: usize,
@@ -251,6 +256,7 @@ impl Default for RebraidParams {
             pull_entry_nodes: true,
             inline_leaf_blocks: true,
             inline_instanced_leaves: true,
+            graft_max_prims: 64,
             parallel_threshold: 1024,
             bake_single_instances: true,
         }

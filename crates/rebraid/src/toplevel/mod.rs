@@ -19,7 +19,7 @@ use crate::bvh::occlusion_order::{OcclusionStats, order_for_occlusion};
 use crate::bvh::triangle4::{Triangle4, block_hit_record, intersect_blocks, leaf_occlusion};
 use crate::bvh::wide::{WIDE_EMPTY, WIDE_MAX_PRIMITIVES, decode_leaf, encode_leaf, is_leaf_ref};
 use crate::bvh::{
-    BoxRay, BoxTester, Bvh, BvhNode, Kernel, SahCosts, TRAVERSAL_STACK, TesterFactory,
+    BoxRay, BoxTester, Bvh, BvhNode, Kernel, MAX_DEPTH, SahCosts, TRAVERSAL_STACK, TesterFactory,
     TraversalCounters, WideBvh, WideNode, WideQuery, WideTriangleBvh, subtree_with, traverse_with,
     with_kernel,
 };
@@ -365,6 +365,8 @@ pub struct TopLevelLayout {
     pub inline_leaf_blocks: bool,
     /// See [`RebraidParams::inline_instanced_leaves`].
     pub inline_instanced_leaves: bool,
+    /// See [`RebraidParams::graft_max_prims`] (0: none).
+    pub graft_max_prims: u32,
 }
 
 /// Copy the triangle blocks of the object leaves that top-level leaves
@@ -601,27 +603,134 @@ fn pull_into_top_level(
     }
 }
 
-/// Occlusion statistics of ref `r` seen from a top-level slot of box
+/// Graft the object subtrees of at most `max_prims` primitives that
+/// top-level slots enter into the top level: such a slot's entry becomes a
+/// copy of the object's wide node it enters, in a new top-level node whose
+/// slots are entries into that node's children (boxes placed as the
+/// builder places opened nodes, [`builder::placed_bounds`]), and so on down
+/// to the object's leaves, which `inline_leaf_blocks` then copies (in
+/// world space when instanced). The first child's entry reuses the
+/// grafted entry's index, as `pull_into_top_level` does.
+///
+/// Why: an entry into an object's inner node costs a ray about 120
+/// instructions (the entry record, the object, the nested walk's set-up;
+/// session 27), and re-braiding leaves most entries at small subtrees
+/// (nexuiz: 1,079 of 1,536 entries at 64 primitives or fewer). Unlike
+/// opening those refs in the builder, which bins them by the SAH, the
+/// graft copies the object's own wide nodes (one read per node, no
+/// collapse). Depth stays within [`MAX_DEPTH`] (deeper nodes stay entries).
+fn graft_entries(
+    wide: &mut WideBvh<8>,
+    entry_refs: &mut Vec<TopRef>,
+    entries: &mut Vec<RefEntry>,
+    objects: &[Option<Arc<ObjectBvh>>],
+    instances: &[InstanceXf],
+    max_prims: u32,
+) {
+    // Depth of every node (the root is 1).
+    let mut depth = vec![0u32; wide.nodes.len()];
+    let mut stack = vec![(0u32, 1u32)];
+    while let Some((n, d)) = stack.pop() {
+        depth[n as usize] = d;
+        let node = &wide.nodes[n as usize];
+        for &c in &node.child[..node.child_count()] {
+            if !is_leaf_ref(c) {
+                stack.push((c, d + 1));
+            }
+        }
+    }
+    // New nodes are appended and visited in turn, so a grafted node's
+    // inner children are grafted too.
+    let mut n = 0;
+    while n < wide.nodes.len() {
+        if depth[n] >= MAX_DEPTH {
+            n += 1;
+            continue;
+        }
+        for s in 0..wide.nodes[n].child_count() {
+            let c = wide.nodes[n].child[s];
+            if !is_leaf_ref(c) || c == WIDE_EMPTY {
+                continue;
+            }
+            let (ri, count) = decode_leaf(c);
+            let e = entries[ri as usize];
+            if count != 1
+                || e.wide == WIDE_EMPTY
+                || is_leaf_ref(e.wide)
+                || entry_refs[ri as usize].prims > max_prims
+            {
+                continue;
+            }
+            let Some(obj) = objects.get(e.object as usize).and_then(|o| o.as_deref()) else {
+                continue;
+            };
+            let Some(ow) = obj.wide.as_ref().map(|w| &w.wide) else {
+                continue;
+            };
+            let xf = (e.instance != INVALID_ID).then(|| &instances[e.instance as usize]);
+            let on = &ow.nodes[e.wide as usize];
+            let slot_box = wide.nodes[n].child_bounds(s);
+            let mut node = WideNode::<8>::EMPTY;
+            for j in 0..on.child_count() {
+                let b = ow.slot_binary[e.wide as usize][j];
+                let child = TopRef {
+                    object: e.object,
+                    node: b,
+                    instance: e.instance,
+                    prims: obj.subtree_prims[b as usize],
+                };
+                let entry = RefEntry {
+                    wide: on.child[j],
+                    node: b,
+                    ..e
+                };
+                let cri = if j == 0 {
+                    entry_refs[ri as usize] = child;
+                    entries[ri as usize] = entry;
+                    ri
+                } else {
+                    entry_refs.push(child);
+                    entries.push(entry);
+                    (entries.len() - 1) as u32
+                };
+                let bounds = builder::placed_bounds(obj, xf, b, on.child_bounds(j), &slot_box);
+                node.set_child(j, &bounds, encode_leaf(cri, 1));
+            }
+            let new = wide.nodes.len() as u32;
+            wide.nodes.push(node);
+            // Grafted nodes hold no top-level binary node.
+            wide.binary_of.push(WIDE_EMPTY);
+            wide.slot_binary.push([WIDE_EMPTY; 8]);
+            depth.push(depth[n] + 1);
+            wide.nodes[n].child[s] = new;
+            wide.slot_binary[n][s] = WIDE_EMPTY;
+        }
+        n += 1;
+    }
+}
+
+/// Occlusion statistics of entry `r` seen from a top-level slot of box
 /// `slot_box` (see [`crate::bvh::occlusion_order`]): those of its object
 /// subtree, the hit probability scaled by the chance that a ray entering the
 /// slot box enters the subtree's (placed) box. Entering an instance costs
 /// about one more unit (transforming the ray, preparing its testers).
+///
+/// `alone`: the slot holds this entry only. A direct entry's placed box is
+/// then the slot box itself (the builder, the collapse, `pull_into_top_level`
+/// and `graft_entries` all give it the node's box), so the scale is 1 and
+/// the object's binary node is not read: one cache miss per slot less in a
+/// pass over every slot of the top level.
 fn ref_occlusion(
     objects: &[Option<Arc<ObjectBvh>>],
     instances: &[InstanceXf],
-    r: &TopRef,
+    r: &RefEntry,
     slot_box: &Aabb,
+    alone: bool,
 ) -> OcclusionStats {
     let Some(obj) = objects.get(r.object as usize).and_then(|o| o.as_deref()) else {
         return OcclusionStats::EMPTY;
     };
-    let node = &obj.nodes()[r.node as usize];
-    let local = node.bounds();
-    let w = obj
-        .wide_of
-        .get(r.node as usize)
-        .copied()
-        .unwrap_or(WIDE_EMPTY);
+    let w = r.wide;
     let mut st = match &obj.wide {
         Some(wide) if w != WIDE_EMPTY && !is_leaf_ref(w) => wide.occlusion[w as usize],
         Some(wide) if w != WIDE_EMPTY => leaf_occlusion(&wide.block_misses, w),
@@ -633,8 +742,12 @@ fn ref_occlusion(
         },
     };
     let (placed_area, entry_cost) = match instances.get(r.instance as usize) {
-        Some(xf) if r.instance != INVALID_ID => (local.half_area() * xf.area_scale, 1.0),
-        _ => (local.half_area(), 0.0),
+        Some(xf) if r.instance != INVALID_ID => (
+            obj.nodes()[r.node as usize].bounds().half_area() * xf.area_scale,
+            1.0,
+        ),
+        _ if alone => return st,
+        _ => (obj.nodes()[r.node as usize].bounds().half_area(), 0.0),
     };
     let slot_area = slot_box.half_area();
     if slot_area > 0.0 && placed_area.is_finite() {
@@ -648,15 +761,15 @@ fn ref_occlusion(
 /// [`crate::bvh::occlusion_order`]) by the stats of the refs under them.
 fn order_top_level(
     wide: &mut WideBvh<8>,
-    refs: &[TopRef],
+    entries: &[RefEntry],
     objects: &[Option<Arc<ObjectBvh>>],
     instances: &[InstanceXf],
 ) -> Vec<OcclusionStats> {
     order_for_occlusion(wide, |leaf, slot_box| {
         let (first, count) = decode_leaf(leaf);
         let (mut miss, mut cost) = (1.0f32, 0.0f32);
-        for r in &refs[first as usize..(first + count) as usize] {
-            let st = ref_occlusion(objects, instances, r, slot_box);
+        for r in &entries[first as usize..(first + count) as usize] {
+            let st = ref_occlusion(objects, instances, r, slot_box, count == 1);
             miss *= 1.0 - st.hit_probability;
             cost += st.cost;
         }
@@ -1457,22 +1570,30 @@ impl TopLevelAccel {
             if layout.pull_entry_nodes {
                 pull_into_top_level(w, &mut entry_refs, &mut entries, &objects, &instances);
             }
+            if layout.graft_max_prims > 0 {
+                graft_entries(
+                    w,
+                    &mut entry_refs,
+                    &mut entries,
+                    &objects,
+                    &instances,
+                    layout.graft_max_prims,
+                );
+            }
             // Leaves index the entries directly (the tree has no index array).
             w.prim_count = entry_refs.len();
-            order_top_level(w, &entry_refs, &objects, &instances);
+            order_top_level(w, &entries, &objects, &instances);
         }
         let block_base = entries.len() as u32;
         let (blocks, block_entry) = match &mut wide {
-            Some(w) if layout.inline_leaf_blocks => {
-                inline_leaf_blocks(
-                    w,
-                    &entries,
-                    &objects,
-                    &instances,
-                    layout.inline_instanced_leaves,
-                    block_buffer,
-                )
-            }
+            Some(w) if layout.inline_leaf_blocks => inline_leaf_blocks(
+                w,
+                &entries,
+                &objects,
+                &instances,
+                layout.inline_instanced_leaves,
+                block_buffer,
+            ),
             _ => Default::default(),
         };
         let mut accel = Self {
@@ -2012,12 +2133,7 @@ impl TopLevelAccel {
             }
             wide.validate(&entry_boxes)?;
             let mut ordered = wide.clone();
-            order_top_level(
-                &mut ordered,
-                &self.entry_refs,
-                &self.objects,
-                &self.instances,
-            );
+            order_top_level(&mut ordered, &self.entries, &self.objects, &self.instances);
             if ordered != *wide {
                 return Err("top-level slots are not in occlusion order".into());
             }
