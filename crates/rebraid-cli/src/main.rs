@@ -106,6 +106,10 @@ struct SceneOpts {
     /// that top-level leaves enter into the top level (0: none).
     #[arg(long)]
     graft_max_prims: Option<u32>,
+    /// Re-braiding: primitives the grafts may copy, per primitive of the
+    /// distinct objects.
+    #[arg(long)]
+    graft_budget: Option<f32>,
     /// Largest leaf of object (and flat) BVHs.
     #[arg(long)]
     max_leaf: Option<u32>,
@@ -167,6 +171,9 @@ impl SceneOpts {
         if let Some(g) = self.graft_max_prims {
             r.graft_max_prims = g;
         }
+        if let Some(g) = self.graft_budget {
+            r.graft_budget = g;
+        }
         r.open_only_overlapping = self.open_only_overlapping;
         if let Some(k) = self.open_rounds {
             r.open_rounds = k;
@@ -215,6 +222,7 @@ impl SceneOpts {
                 "graft-max-prims",
                 self.graft_max_prims.map(|x| x.to_string()),
             ),
+            ("graft-budget", self.graft_budget.map(|x| x.to_string())),
             (
                 "budget-overlap-unit",
                 self.budget_overlap_unit.map(|x| x.to_string()),

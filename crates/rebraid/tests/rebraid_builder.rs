@@ -703,17 +703,23 @@ fn grafted_entries_answer_right() {
         let world = model.world();
         let rays = random_rays(&mut rng(seed + 110), &world, 250, SCENE_LO, SCENE_HI);
         let mut entries_at = Vec::new();
-        for (graft, pull, inline) in [
-            (0, true, true),
-            (8, true, true),
-            (64, true, true),
-            (64, false, true),
-            (64, true, false),
-            (u32::MAX, true, true),
+        // (size, budget per distinct primitive, pull, inline); a budget of
+        // 0 grafts nothing, one this large everything up to the size.
+        for (graft, budget, pull, inline) in [
+            (0, 1e6, true, true),
+            (8, 1e6, true, true),
+            (64, 1e6, true, true),
+            (64, 1e6, false, true),
+            (64, 1e6, true, false),
+            (u32::MAX, 1e6, true, true),
+            (u32::MAX, 0.0, true, true),
+            (u32::MAX, 0.1, true, true),
         ] {
-            let what = format!("seed {seed} graft {graft} pull {pull} inline {inline}");
+            let what =
+                format!("seed {seed} graft {graft} budget {budget} pull {pull} inline {inline}");
             let mut scene = model.to_scene(rebraided(RebraidParams {
                 graft_max_prims: graft,
+                graft_budget: budget,
                 pull_entry_nodes: pull,
                 inline_leaf_blocks: inline,
                 // A small budget leaves inner object nodes of every size
@@ -736,7 +742,7 @@ fn grafted_entries_answer_right() {
                     if e.wide != WIDE_EMPTY && !is_leaf_ref(e.wide) {
                         inner_entries += 1;
                         assert!(
-                            t.entry_refs[ri as usize].prims > graft,
+                            t.entry_refs[ri as usize].prims > graft || budget < 1e6,
                             "{what}: entry {ri} of {} primitives not grafted",
                             t.entry_refs[ri as usize].prims
                         );
@@ -748,6 +754,14 @@ fn grafted_entries_answer_right() {
         assert!(entries_at[0] > 0, "seed {seed}: no entries to graft");
         assert!(entries_at[2] < entries_at[0], "seed {seed}: {entries_at:?}");
         assert_eq!(entries_at[5], 0, "seed {seed}: entries left at any size");
+        assert_eq!(
+            entries_at[6], entries_at[0],
+            "seed {seed}: grafted without budget"
+        );
+        assert!(
+            0 < entries_at[7] && entries_at[7] < entries_at[0],
+            "seed {seed}: a tenth of the primitives grafts some entries, not all: {entries_at:?}"
+        );
     }
 }
 

@@ -875,6 +875,7 @@ impl Scene {
                 } else {
                     0
                 },
+                graft_budget: params.graft_budget,
             },
             block_buffer,
         )

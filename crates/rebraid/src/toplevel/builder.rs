@@ -34,7 +34,14 @@
 //!   ([`RebraidParams::open_instances`]): the children's world boxes are their
 //!   transformed object-space boxes (for leaves: the box of their transformed
 //!   vertices);
-//! - the pairwise-overlap termination test covers lists of up to 64 refs.
+//! - the pairwise-overlap termination test covers lists of up to 64 refs;
+//! - after the build (`super::TopLevelAccel::new`) the entries left at small
+//!   object subtrees are grafted into the top level
+//!   ([`RebraidParams::graft_max_prims`]) and the object leaves it reaches
+//!   through instances are copied into it in world space
+//!   ([`RebraidParams::inline_instanced_leaves`]), so a re-braided ray
+//!   rarely enters an object at all (Embree's two-level traversal enters an
+//!   instance at every instance leaf).
 //!
 //! Tried and rejected (figures from `rebraid stats`, SAH cost, on the shared
 //! scenes): an "SAH guard" that keeps an opening round only when the opened
@@ -213,13 +220,51 @@ pub struct RebraidParams {
     /// enter through an instance too, their vertices transformed into
     /// world space (see [`super::TopLevelAccel::new`]): a ray then tests
     /// them as it tests a directly placed leaf's copy, without the entry,
-    /// the instance ray and its set-up.
+    /// the instance ray and its set-up. One copy per placement of each
+    /// such leaf (ravenbridge: 16.1 -> 16.5 MB in all). Measured (session
+    /// 28, `rebraid stats SCENE --visits 240x135` and callgrind over the
+    /// timed batch): ravenbridge's entries per re-braided diffuse ray 2.95
+    /// -> 0.40 and its instructions per ray 1,855.0 -> 1,665.2; wall time
+    /// (`tools/ab-wall.sh`, one thread, 480x270, 8 rounds, control beside)
+    /// diffuse 1.113 (control 1.036), primary 1.218 (1.050), shadow 1.275
+    /// (1.046); the engine and cocoa within their controls. Traced in world
+    /// space, a copied leaf's triangles are no longer watertight against the
+    /// same instance's triangles tested in object space through an entry
+    /// (within the instance each side is); hits report the entry path's
+    /// normal length (`TopLevelAccel::block_normal_scale`).
     pub inline_instanced_leaves: bool,
     /// Graft the object subtrees of at most this many primitives that
     /// top-level leaves enter into the top level as copies of the object's
     /// own nodes (0: none; see [`super::TopLevelAccel::new`]), so that a ray
     /// reaching them walks on in the top level instead of entering.
+    /// Ignored when `open` is off (the plain two-level mode stays plain).
+    ///
+    /// Measured (session 28, callgrind over the timed batch, instructions
+    /// per re-braided diffuse ray at 0 / 16 / 32 / 64 / 256 / 1,024):
+    /// nexuiz 1,718.9 / 1,702.9 / 1,687.6 / 1,658.3 / 1,641.8 / 1,638.9,
+    /// the engine 1,331.9 / 1,330.3 / 1,319.8 / 1,295.0 / 1,243.0 / 1,212.5,
+    /// cocoa 666.5 / 664.8 / 658.8 / 646.9 / 619.9 / 614.5; ravenbridge,
+    /// samurai and openarena 0.4-0.8% at 64. The top level's time grows
+    /// with the copies (one thread, `rebraid bench SCENE --modes rebraided
+    /// --sets primary --reps 9 --graft-max-prims G`): at 64 by 0.3-1.6 ms,
+    /// at 256 by 2-9 ms (of builds of 13-40 ms), which the build column
+    /// against Embree cannot carry; 64 is the default. On the library at
+    /// scale 3 (3M triangles, most entries small) grafting every entry of
+    /// up to 64 primitives copied 116 MB and took 90-100 ms, hence
+    /// [`RebraidParams::graft_budget`].
     pub graft_max_prims: u32,
+    /// How many primitives the grafts may copy in all, per primitive of
+    /// the distinct objects (each object counted once): the entries a ray
+    /// is likeliest to reach per primitive copied (slot area over subtree
+    /// primitives) are grafted first. 0 grafts nothing.
+    ///
+    /// Measured (session 28, instructions per re-braided diffuse ray,
+    /// callgrind, at budgets 0.05 / 0.1 / 0.25 and unlimited, sizes up to
+    /// 64): nexuiz 1,692.5 / 1,683.6 / 1,658.4 / 1,658.4 (none: 1,718.9),
+    /// the engine 1,315.0 / 1,308.7 / 1,295.1 / 1,295.1 (1,331.9), cocoa
+    /// 651.7 / 648.7 / 647.0 / 647.0 (666.5); the library's copies 9.8 /
+    /// 19.1 / 47.3 / 116 MB. The default, 0.1.
+    pub graft_budget: f32,
     /// Lists longer than this are opened, binned and partitioned with
     /// data-parallel loops, and their halves built as parallel tasks.
     pub parallel_threshold: usize,
@@ -257,6 +302,7 @@ impl Default for RebraidParams {
             inline_leaf_blocks: true,
             inline_instanced_leaves: true,
             graft_max_prims: 64,
+            graft_budget: 0.1,
             parallel_threshold: 1024,
             bake_single_instances: true,
         }
@@ -286,6 +332,11 @@ impl RebraidParams {
         if !(self.threshold >= 0.0 && self.threshold.is_finite()) {
             return Err(Error::InvalidParameter(
                 "threshold must be finite and >= 0".into(),
+            ));
+        }
+        if !(self.graft_budget >= 0.0 && self.graft_budget.is_finite()) {
+            return Err(Error::InvalidParameter(
+                "graft_budget must be finite and >= 0".into(),
             ));
         }
         if let RefBudget::Scaled {
