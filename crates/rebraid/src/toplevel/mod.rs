@@ -564,44 +564,73 @@ fn pull_into_top_level(
             }
             let Some((s, first, _)) = best else { break };
             let parent_box = wide.nodes[n].child_bounds(s);
-            let e = entries[first as usize];
-            let obj = objects[e.object as usize]
-                .as_deref()
-                .expect("pullable entries have objects");
-            let ow = &obj.wide.as_ref().expect("pullable entries are wide").wide;
-            let on = &ow.nodes[e.wide as usize];
-            let xf = (e.instance != INVALID_ID).then(|| &instances[e.instance as usize]);
-            for j in 0..on.child_count() {
-                let b = ow.slot_binary[e.wide as usize][j];
-                let child = TopRef {
-                    object: e.object,
-                    node: b,
-                    instance: e.instance,
-                    prims: obj.subtree_prims[b as usize],
-                };
-                let entry = RefEntry {
-                    wide: on.child[j],
-                    node: b,
-                    ..e
-                };
-                // The first child takes the ref's place (entry and slot).
-                let (slot, ri) = if j == 0 {
-                    entry_refs[first as usize] = child;
-                    entries[first as usize] = entry;
-                    (s, first)
-                } else {
-                    entry_refs.push(child);
-                    entries.push(entry);
-                    (used + j - 1, (entries.len() - 1) as u32)
-                };
-                // The wide slot holds the node's box exactly, in the node
-                // just read (the binary node would be another load).
-                let bounds = builder::placed_bounds(obj, xf, b, on.child_bounds(j), &parent_box);
-                wide.nodes[n].set_child(slot, &bounds, encode_leaf(ri, 1));
-                // The slot no longer holds a top-level binary node.
-                wide.slot_binary[n][slot] = WIDE_EMPTY;
-            }
+            let node = &mut wide.nodes[n];
+            let slot_binary = &mut wide.slot_binary[n];
+            let split = (&mut *entry_refs, &mut *entries);
+            split_entry(
+                first,
+                &parent_box,
+                split,
+                objects,
+                instances,
+                |j, ri, b, _| {
+                    // The first child takes the ref's place (entry and slot).
+                    let slot = if j == 0 { s } else { used + j - 1 };
+                    node.set_child(slot, b, encode_leaf(ri, 1));
+                    // The slot no longer holds a top-level binary node.
+                    slot_binary[slot] = WIDE_EMPTY;
+                },
+            );
         }
+    }
+}
+
+/// Split entry `ri` into entries for the children of the object wide node
+/// it enters: the first child's replaces it (ref and entry), the others are
+/// appended. `place(j, entry index, placed box, child's wide reference)`
+/// puts child `j` into a top-level slot; its box is placed as the builder
+/// places opened nodes ([`builder::placed_bounds`], clipped to `slot_box`),
+/// from the object node just read (the binary node would be another load).
+/// The entry must enter an inner node of an object with a wide layout.
+fn split_entry(
+    ri: u32,
+    slot_box: &Aabb,
+    (entry_refs, entries): (&mut Vec<TopRef>, &mut Vec<RefEntry>),
+    objects: &[Option<Arc<ObjectBvh>>],
+    instances: &[InstanceXf],
+    mut place: impl FnMut(usize, u32, &Aabb, u32),
+) {
+    let e = entries[ri as usize];
+    let obj = objects[e.object as usize]
+        .as_deref()
+        .expect("split entries have objects");
+    let ow = &obj.wide.as_ref().expect("split entries are wide").wide;
+    let on = &ow.nodes[e.wide as usize];
+    let xf = (e.instance != INVALID_ID).then(|| &instances[e.instance as usize]);
+    for j in 0..on.child_count() {
+        let b = ow.slot_binary[e.wide as usize][j];
+        let child = TopRef {
+            object: e.object,
+            node: b,
+            instance: e.instance,
+            prims: obj.subtree_prims[b as usize],
+        };
+        let entry = RefEntry {
+            wide: on.child[j],
+            node: b,
+            ..e
+        };
+        let cri = if j == 0 {
+            entry_refs[ri as usize] = child;
+            entries[ri as usize] = entry;
+            ri
+        } else {
+            entry_refs.push(child);
+            entries.push(entry);
+            (entries.len() - 1) as u32
+        };
+        let bounds = builder::placed_bounds(obj, xf, b, on.child_bounds(j), slot_box);
+        place(j, cri, &bounds, on.child[j]);
     }
 }
 
@@ -704,44 +733,16 @@ fn graft_entries(
             if depth[n] >= MAX_DEPTH {
                 continue;
             }
-            let e = entries[ri as usize];
-            let obj = objects[e.object as usize]
-                .as_deref()
-                .expect("graftable entries have objects");
-            let ow = &obj.wide.as_ref().expect("graftable entries are wide").wide;
-            let xf = (e.instance != INVALID_ID).then(|| &instances[e.instance as usize]);
-            let on = &ow.nodes[e.wide as usize];
             let slot_box = wide.nodes[n].child_bounds(s);
             let new = wide.nodes.len() as u32;
             let mut node = WideNode::<8>::EMPTY;
-            for j in 0..on.child_count() {
-                let b = ow.slot_binary[e.wide as usize][j];
-                let child = TopRef {
-                    object: e.object,
-                    node: b,
-                    instance: e.instance,
-                    prims: obj.subtree_prims[b as usize],
-                };
-                let entry = RefEntry {
-                    wide: on.child[j],
-                    node: b,
-                    ..e
-                };
-                let cri = if j == 0 {
-                    entry_refs[ri as usize] = child;
-                    entries[ri as usize] = entry;
-                    ri
-                } else {
-                    entry_refs.push(child);
-                    entries.push(entry);
-                    (entries.len() - 1) as u32
-                };
-                let bounds = builder::placed_bounds(obj, xf, b, on.child_bounds(j), &slot_box);
-                node.set_child(j, &bounds, encode_leaf(cri, 1));
-                if !is_leaf_ref(on.child[j]) {
+            let split = (&mut *entry_refs, &mut *entries);
+            split_entry(ri, &slot_box, split, objects, instances, |j, cri, b, w| {
+                node.set_child(j, b, encode_leaf(cri, 1));
+                if !is_leaf_ref(w) {
                     work.push((new, j as u32));
                 }
-            }
+            });
             wide.nodes.push(node);
             // Grafted nodes hold no top-level binary node.
             wide.binary_of.push(WIDE_EMPTY);
