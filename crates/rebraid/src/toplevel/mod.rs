@@ -531,17 +531,8 @@ fn pull_into_top_level(
     // The entry a slot's single-ref leaf names and the child count of the
     // object wide node it enters, if that node has children to pull.
     let pullable = |leaf: u32, entries: &[RefEntry]| -> Option<(u32, usize)> {
-        if !is_leaf_ref(leaf) || leaf == WIDE_EMPTY {
-            return None;
-        }
-        let (first, count) = decode_leaf(leaf);
-        let e = entries[first as usize];
-        if count != 1 || e.wide == WIDE_EMPTY || is_leaf_ref(e.wide) {
-            return None;
-        }
-        let obj = objects.get(e.object as usize)?.as_deref()?;
-        let k = obj.wide.as_ref()?.wide.nodes[e.wide as usize].child_count();
-        Some((first, k))
+        let (first, node) = entered_inner_node(leaf, entries, objects)?;
+        Some((first, node.child_count()))
     };
     for n in 0..wide.nodes.len() {
         loop {
@@ -583,6 +574,26 @@ fn pull_into_top_level(
             );
         }
     }
+}
+
+/// The entry that top-level child reference `leaf` names when it is a
+/// single-entry leaf entering an inner node of an object's wide layout, and
+/// that node: what `pull_into_top_level` and `graft_entries` can open.
+fn entered_inner_node<'o>(
+    leaf: u32,
+    entries: &[RefEntry],
+    objects: &'o [Option<Arc<ObjectBvh>>],
+) -> Option<(u32, &'o WideNode<8>)> {
+    if !is_leaf_ref(leaf) || leaf == WIDE_EMPTY {
+        return None;
+    }
+    let (first, count) = decode_leaf(leaf);
+    let e = entries[first as usize];
+    if count != 1 || e.wide == WIDE_EMPTY || is_leaf_ref(e.wide) {
+        return None;
+    }
+    let obj = objects.get(e.object as usize)?.as_deref()?;
+    Some((first, &obj.wide.as_ref()?.wide.nodes[e.wide as usize]))
 }
 
 /// Split entry `ri` into entries for the children of the object wide node
@@ -679,19 +690,8 @@ fn graft_entries(
             }
         }
     }
-    // The entry a slot's single-ref leaf names when it enters an inner
-    // object node with a wide layout.
     let graftable = |c: u32, entries: &[RefEntry]| -> Option<u32> {
-        if !is_leaf_ref(c) || c == WIDE_EMPTY {
-            return None;
-        }
-        let (ri, count) = decode_leaf(c);
-        let e = entries[ri as usize];
-        let wide_obj = objects
-            .get(e.object as usize)
-            .and_then(|o| o.as_deref())
-            .is_some_and(|o| o.wide.is_some());
-        (count == 1 && wide_obj && e.wide != WIDE_EMPTY && !is_leaf_ref(e.wide)).then_some(ri)
+        entered_inner_node(c, entries, objects).map(|(ri, _)| ri)
     };
     // Candidates by the chance that a ray reaching the top level enters
     // them (their slot's area) per primitive copied: most entries saved
@@ -1668,23 +1668,18 @@ impl TopLevelAccel {
     /// Fill `block_placement` and `block_normal_scale` from `block_entry`
     /// and the baked placements.
     fn place_blocks(&mut self) {
-        let placement: Vec<(u32, u32)> = self
+        let (placement, scale) = self
             .block_entry
             .iter()
-            .map(|&ri| self.block_entry_placement(ri))
-            .collect();
-        let scale: Vec<f32> = self
-            .block_entry
-            .iter()
-            .map(|&ri| self.block_entry_normal_scale(ri))
-            .collect();
+            .map(|&ri| (self.entry_placement(ri), self.block_entry_normal_scale(ri)))
+            .unzip();
         self.block_placement = placement;
         self.block_normal_scale = scale;
     }
 
     /// The (object, instance) a hit on a block copied for entry `ri`
-    /// reports.
-    fn block_entry_placement(&self, ri: u32) -> (u32, u32) {
+    /// reports: the entry's placement.
+    fn entry_placement(&self, ri: u32) -> (u32, u32) {
         let e = &self.entries[ri as usize];
         if e.instance == INVALID_ID {
             self.placement_of_slot(e.object)
@@ -1850,7 +1845,8 @@ impl TopLevelAccel {
     #[inline(always)]
     fn make_hit(&self, (t, u, v, k, ri): RefHit) -> Hit {
         let (prim_id, normal, (object_id, instance_id)) = if ri == INLINE_HIT {
-            // A copied block: world-space vertices, its normal scaled as its entry would report it.
+            // A copied block: world-space vertices, its normal scaled as
+            // its entry would report it.
             let (prim, normal) = block_hit_record(&self.blocks, k);
             let b = (k / 4) as usize;
             (
@@ -2096,10 +2092,10 @@ impl TopLevelAccel {
             if self.entries.get(ri as usize).is_none() {
                 return Err(format!("copied block {b}: no entry {ri}"));
             }
-            if placed != self.block_entry_placement(ri) {
+            if placed != self.entry_placement(ri) {
                 return Err(format!(
                     "copied block {b}: placed as {placed:?}, its entry {ri} places {:?}",
-                    self.block_entry_placement(ri)
+                    self.entry_placement(ri)
                 ));
             }
             if self.block_normal_scale[b] != self.block_entry_normal_scale(ri) {
