@@ -648,4 +648,33 @@ fn invalid_boxes_are_rejected() {
             Err(Error::InvalidBounds { index })
         );
     }
+    // Long inputs take the chunked parallel pass: the first bad primitive
+    // is named whichever chunk it is in, and an inverted box counts.
+    let n = 100_000;
+    let bad: [(usize, Aabb, Vec3); 4] = [
+        (70_001, Aabb::new(Vec3::ONE, Vec3::ZERO), c),
+        (40_000, unit, Vec3::new(0.5, f32::INFINITY, 0.5)),
+        (
+            99_999,
+            Aabb::new(Vec3::ZERO, Vec3::new(1.0, f32::NAN, 1.0)),
+            c,
+        ),
+        (3, Aabb::new(Vec3::splat(f32::NEG_INFINITY), Vec3::ONE), c),
+    ];
+    // Each alone, then all four (the first one wins).
+    let sets: Vec<&[(usize, Aabb, Vec3)]> =
+        vec![&bad[0..1], &bad[1..2], &bad[2..3], &bad[3..4], &bad];
+    for set in sets {
+        let (mut boxes, mut centroids) = (vec![unit; n], vec![c; n]);
+        for &(i, b, cc) in set {
+            boxes[i] = b;
+            centroids[i] = cc;
+        }
+        let first = set.iter().map(|x| x.0).min().unwrap();
+        assert_eq!(
+            build_bvh(&boxes, &centroids, &d),
+            Err(Error::InvalidBounds { index: first })
+        );
+    }
+    assert!(build_bvh(&vec![unit; n], &vec![c; n], &d).is_ok());
 }
