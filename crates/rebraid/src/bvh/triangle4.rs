@@ -211,54 +211,27 @@ pub fn pack_triangle4_with_misses<const W: usize>(
             next += n;
         }
     }
-    // Pass 2: fill the blocks in place, in pieces (in parallel for long
-    // inputs; each block depends on its source only, so the result does not
-    // depend on the thread count). Built where they are stored: collecting
-    // `(Triangle4, f32)` pairs copied each 160-byte block out of the closure
-    // with `memcpy`, and the lane-by-lane `set` and `areas` around it came
-    // to 110 instructions per triangle, 7.5% of a re-braided nexuiz build's
-    // (callgrind, session 29).
-    let total = sources.len();
-    let mut blocks: Vec<Triangle4> = Vec::with_capacity(total);
-    let mut misses: Vec<f32> = Vec::with_capacity(total);
-    let fill = |src: &[(u32, u32, f32)],
-                dst: &mut [std::mem::MaybeUninit<Triangle4>],
-                miss: &mut [std::mem::MaybeUninit<f32>]| {
-        for ((&(first, count, inv_h), d), m) in src.iter().zip(dst).zip(miss) {
-            let b = d.write(Triangle4::EMPTY);
-            for lane in 0..count as usize {
-                let k = first as usize + lane;
-                b.set(lane, prim_indices[k], triangles[k]);
-            }
-            let a = b.areas();
-            let mut p = 1.0f32;
-            for area in a {
-                p *= triangle_miss_probability(area, inv_h);
-            }
-            m.write(p);
+    // Pass 2: fill the blocks, one exact-size collect (in parallel for long
+    // inputs; the result does not depend on the thread count).
+    let block = |&(first, count, inv_h): &(u32, u32, f32)| {
+        let mut b = Triangle4::EMPTY;
+        for lane in 0..count {
+            let k = first + lane;
+            b.set(
+                lane as usize,
+                prim_indices[k as usize],
+                triangles[k as usize],
+            );
         }
+        let m = b.areas().map(|a| triangle_miss_probability(a, inv_h));
+        (b, m[0] * m[1] * m[2] * m[3])
     };
-    {
-        let dst = &mut blocks.spare_capacity_mut()[..total];
-        let miss = &mut misses.spare_capacity_mut()[..total];
-        if triangles.len() >= 1 << 15 {
-            use rayon::prelude::*;
-            sources
-                .par_chunks(4096)
-                .zip(dst.par_chunks_mut(4096))
-                .zip(miss.par_chunks_mut(4096))
-                .for_each(|((s, d), m)| fill(s, d, m));
-        } else {
-            fill(&sources, dst, miss);
-        }
-    }
-    // SAFETY: `fill` wrote every one of the first `total` slots of both
-    // spare capacities (the pieces zip `sources` with equal-length pieces
-    // of each, so every source has its block and miss slot).
-    unsafe {
-        blocks.set_len(total);
-        misses.set_len(total);
-    }
+    let (blocks, misses): (Vec<Triangle4>, Vec<f32>) = if triangles.len() >= 1 << 15 {
+        use rayon::prelude::*;
+        sources.par_iter().with_min_len(4096).map(block).unzip()
+    } else {
+        sources.iter().map(block).unzip()
+    };
     debug_assert_eq!(blocks.len(), next as usize);
     wide.prim_count = blocks.len();
     (blocks, misses)
