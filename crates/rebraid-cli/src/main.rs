@@ -110,6 +110,10 @@ struct SceneOpts {
     /// distinct objects.
     #[arg(long)]
     graft_budget: Option<f32>,
+    /// Re-braiding: graft past the budget the entries whose slot covers at
+    /// least this share of the scene box's area per primitive (0: off).
+    #[arg(long)]
+    graft_share_per_prim: Option<f32>,
     /// Largest leaf of object (and flat) BVHs.
     #[arg(long)]
     max_leaf: Option<u32>,
@@ -174,6 +178,9 @@ impl SceneOpts {
         if let Some(g) = self.graft_budget {
             r.graft_budget = g;
         }
+        if let Some(g) = self.graft_share_per_prim {
+            r.graft_share_per_prim = g;
+        }
         r.open_only_overlapping = self.open_only_overlapping;
         if let Some(k) = self.open_rounds {
             r.open_rounds = k;
@@ -223,6 +230,10 @@ impl SceneOpts {
                 self.graft_max_prims.map(|x| x.to_string()),
             ),
             ("graft-budget", self.graft_budget.map(|x| x.to_string())),
+            (
+                "graft-share-per-prim",
+                self.graft_share_per_prim.map(|x| x.to_string()),
+            ),
             (
                 "budget-overlap-unit",
                 self.budget_overlap_unit.map(|x| x.to_string()),

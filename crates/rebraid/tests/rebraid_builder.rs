@@ -703,23 +703,31 @@ fn grafted_entries_answer_right() {
         let world = model.world();
         let rays = random_rays(&mut rng(seed + 110), &world, 250, SCENE_LO, SCENE_HI);
         let mut entries_at = Vec::new();
-        // (size, budget per distinct primitive, pull, inline); a budget of
-        // 0 grafts nothing, one this large everything up to the size.
-        for (graft, budget, pull, inline) in [
-            (0, 1e6, true, true),
-            (8, 1e6, true, true),
-            (64, 1e6, true, true),
-            (64, 1e6, false, true),
-            (64, 1e6, true, false),
-            (u32::MAX, 1e6, true, true),
-            (u32::MAX, 0.0, true, true),
-            (u32::MAX, 0.1, true, true),
+        // (size, budget per distinct primitive, share of the root area per
+        // primitive past the budget, pull, inline); a budget of 0 grafts
+        // nothing, one this large everything up to the size; a share this
+        // small makes every entry dense (grafted up to the distinct
+        // primitives), one this large none.
+        for (graft, budget, share, pull, inline) in [
+            (0, 1e6, 0.0, true, true),
+            (8, 1e6, 0.0, true, true),
+            (64, 1e6, 0.0, true, true),
+            (64, 1e6, 0.0, false, true),
+            (64, 1e6, 0.0, true, false),
+            (u32::MAX, 1e6, 0.0, true, true),
+            (u32::MAX, 0.0, 0.0, true, true),
+            (u32::MAX, 0.1, 0.0, true, true),
+            (u32::MAX, 1e-6, 0.0, true, true),
+            (u32::MAX, 1e-6, 1e-12, true, true),
+            (u32::MAX, 1e-6, 1e3, true, true),
         ] {
-            let what =
-                format!("seed {seed} graft {graft} budget {budget} pull {pull} inline {inline}");
+            let what = format!(
+                "seed {seed} graft {graft} budget {budget} share {share} pull {pull} inline {inline}"
+            );
             let mut scene = model.to_scene(rebraided(RebraidParams {
                 graft_max_prims: graft,
                 graft_budget: budget,
+                graft_share_per_prim: share,
                 pull_entry_nodes: pull,
                 inline_leaf_blocks: inline,
                 // A small budget leaves inner object nodes of every size
@@ -761,6 +769,16 @@ fn grafted_entries_answer_right() {
         assert!(
             0 < entries_at[7] && entries_at[7] < entries_at[0],
             "seed {seed}: a tenth of the primitives grafts some entries, not all: {entries_at:?}"
+        );
+        // Past a budget that grafts next to nothing: every entry dense
+        // grafts what the distinct primitives allow, none dense adds none.
+        assert!(
+            entries_at[9] < entries_at[8],
+            "seed {seed}: dense entries past the budget: {entries_at:?}"
+        );
+        assert_eq!(
+            entries_at[10], entries_at[8],
+            "seed {seed}: no entry dense: {entries_at:?}"
         );
     }
 }

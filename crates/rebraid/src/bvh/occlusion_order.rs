@@ -124,18 +124,42 @@ pub fn order_for_occlusion<const W: usize>(
     wide: &mut WideBvh<W>,
     leaf: impl Fn(u32, &Aabb) -> OcclusionStats + Sync,
 ) -> Vec<OcclusionStats> {
-    order_for_occlusion_from(wide, leaf, PARALLEL_ORDER_NODES)
+    let len = wide.nodes.len();
+    order_for_occlusion_from(
+        wide,
+        leaf,
+        PARALLEL_ORDER_NODES,
+        (len, |_| OcclusionStats::EMPTY),
+    )
 }
 
-/// [`order_for_occlusion`], by levels in parallel from `parallel_nodes`
-/// nodes on (the tests compare both ways on one tree).
+/// [`order_for_occlusion`] for a tree whose nodes from `fixed_from` on are
+/// already in order and whose subtree stats `fixed(n)` gives: those nodes
+/// are left as they are (the re-braided top level's grafted copies of
+/// object nodes, which the objects' own builds ordered).
+pub fn order_for_occlusion_except<const W: usize>(
+    wide: &mut WideBvh<W>,
+    leaf: impl Fn(u32, &Aabb) -> OcclusionStats + Sync,
+    fixed_from: usize,
+    fixed: impl Fn(usize) -> OcclusionStats + Sync,
+) -> Vec<OcclusionStats> {
+    order_for_occlusion_from(wide, leaf, PARALLEL_ORDER_NODES, (fixed_from, fixed))
+}
+
+/// [`order_for_occlusion_except`], by levels in parallel from
+/// `parallel_nodes` nodes on (the tests compare both ways on one tree).
 fn order_for_occlusion_from<const W: usize>(
     wide: &mut WideBvh<W>,
     leaf: impl Fn(u32, &Aabb) -> OcclusionStats + Sync,
     parallel_nodes: usize,
+    (fixed_from, fixed): (usize, impl Fn(usize) -> OcclusionStats + Sync),
 ) -> Vec<OcclusionStats> {
     let len = wide.nodes.len();
     let mut stats = vec![OcclusionStats::EMPTY; len];
+    for (n, st) in stats.iter_mut().enumerate().skip(fixed_from) {
+        *st = fixed(n);
+    }
+    let len = len.min(fixed_from);
     if len < parallel_nodes {
         for n in (0..len).rev() {
             let (st, order) = order_node(&wide.nodes[n], n, &stats, &leaf);
@@ -150,7 +174,8 @@ fn order_for_occlusion_from<const W: usize>(
     // the library scene at 3M triangles) level by level from the deepest, the
     // nodes of a level in parallel: each node needs only its children's
     // stats, from deeper levels. Same answers as the sweep above.
-    let mut depth = vec![0u32; len];
+    // (Fixed nodes get depths too, as children, but are not ordered.)
+    let mut depth = vec![0u32; wide.nodes.len()];
     for n in 0..len {
         for &c in &wide.nodes[n].child {
             if c != WIDE_EMPTY && !is_leaf_ref(c) {
@@ -158,10 +183,11 @@ fn order_for_occlusion_from<const W: usize>(
             }
         }
     }
+    let depth = &depth[..len];
     let levels = depth.iter().max().map_or(0, |&d| d as usize + 1);
     // Nodes by level (a counting sort, each level in index order).
     let mut start = vec![0usize; levels + 1];
-    for &d in &depth {
+    for &d in depth {
         start[d as usize + 1] += 1;
     }
     for l in 0..levels {
@@ -405,12 +431,31 @@ mod tests {
             )
         };
         let (mut one, mut levels) = (wide.clone(), wide.clone());
-        let a = order_for_occlusion_from(&mut one, leaf, usize::MAX);
-        let b = order_for_occlusion_from(&mut levels, leaf, 0);
+        let none = (usize::MAX, |_| OcclusionStats::EMPTY);
+        let a = order_for_occlusion_from(&mut one, leaf, usize::MAX, none);
+        let b = order_for_occlusion_from(&mut levels, leaf, 0, none);
         assert_ne!(one, wide, "some slots move");
         assert_eq!(a, b);
         assert_eq!(one, levels);
         assert!(a[0].cost > 1.0);
+        // Nodes from `k` on fixed (given their stats, left in place):
+        // with the stats and order the full pass gave them, the rest comes
+        // out as the full pass left it too, both ways; the fixed nodes of
+        // the unordered tree stay unordered.
+        let k = wide.nodes.len() / 2;
+        for parallel in [usize::MAX, 0] {
+            let mut t = wide.clone();
+            for n in k..t.nodes.len() {
+                t.nodes[n] = one.nodes[n];
+                t.slot_binary[n] = one.slot_binary[n];
+            }
+            let st = order_for_occlusion_from(&mut t, leaf, parallel, (k, |n| a[n]));
+            assert_eq!(st, a);
+            assert_eq!(t, one);
+            let mut u = wide.clone();
+            order_for_occlusion_from(&mut u, leaf, parallel, (k, |n| a[n]));
+            assert_eq!(u.nodes[k..], wide.nodes[k..]);
+        }
     }
 
     #[test]

@@ -141,12 +141,16 @@ impl Triangle4 {
     pub fn transformed(&self, xf: &glam::Affine3A) -> Self {
         let m = xf.matrix3;
         let (c0, c1, c2, t) = (m.x_axis, m.y_axis, m.z_axis, xf.translation);
-        let v = std::array::from_fn(|i| {
-            let [x, y, z] = self.v[i];
-            std::array::from_fn(|r| {
-                std::array::from_fn(|l| ((x[l] * c0[r] + y[l] * c1[r]) + z[l] * c2[r]) + t[r])
-            })
-        });
+        // Plain loops: the nested `array::from_fn` closures this was first
+        // written with were not all inlined (150 instructions per block).
+        let mut v = [[[0.0f32; 4]; 3]; 3];
+        for (out, [x, y, z]) in v.iter_mut().zip(&self.v) {
+            for (r, row) in out.iter_mut().enumerate() {
+                for (l, o) in row.iter_mut().enumerate() {
+                    *o = ((x[l] * c0[r] + y[l] * c1[r]) + z[l] * c2[r]) + t[r];
+                }
+            }
+        }
         Self { v, prim: self.prim }
     }
 

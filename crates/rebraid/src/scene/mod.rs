@@ -159,6 +159,11 @@ struct Instance {
 
 /// The committed acceleration structure.
 #[derive(Clone, Debug, Default)]
+#[allow(
+    clippy::large_enum_variant,
+    reason = "one per scene, built once per commit and never moved in a hot path; \
+              boxing it would put a pointer between every trace call and its tables"
+)]
 pub enum Accel {
     /// Nothing committed yet, or an empty scene.
     #[default]
@@ -876,6 +881,7 @@ impl Scene {
                     0
                 },
                 graft_budget: params.graft_budget,
+                graft_share_per_prim: params.graft_share_per_prim,
             },
             block_buffer,
         )

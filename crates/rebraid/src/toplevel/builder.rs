@@ -248,10 +248,14 @@ pub struct RebraidParams {
     /// with the copies (one thread, `rebraid bench SCENE --modes rebraided
     /// --sets primary --reps 9 --graft-max-prims G`): at 64 by 0.3-1.6 ms,
     /// at 256 by 2-9 ms (of builds of 13-40 ms), which the build column
-    /// against Embree cannot carry; 64 is the default. On the library at
+    /// against Embree cannot carry without a limit. On the library at
     /// scale 3 (3M triangles, most entries small) grafting every entry of
     /// up to 64 primitives copied 116 MB and took 90-100 ms, hence
-    /// [`RebraidParams::graft_budget`].
+    /// [`RebraidParams::graft_budget`] and, since session 29,
+    /// [`RebraidParams::graft_share_per_prim`]: with those two choosing
+    /// what is copied, the size only bounds one graft, and the default is
+    /// 512 (64 until session 29; the engine's dense entries lie in
+    /// subtrees of 65-512 primitives).
     pub graft_max_prims: u32,
     /// How many primitives the grafts may copy in all, per primitive of
     /// the distinct objects (each object counted once): the entries a ray
@@ -265,6 +269,35 @@ pub struct RebraidParams {
     /// 651.7 / 648.7 / 647.0 / 647.0 (666.5); the library's copies 9.8 /
     /// 19.1 / 47.3 / 116 MB. The default, 0.1.
     pub graft_budget: f32,
+    /// Entries whose top-level slot box has at least this share of the
+    /// top level's root box area per primitive under the entry are grafted
+    /// past [`RebraidParams::graft_budget`], up to the distinct primitives
+    /// in all; 0 turns it off. At the default, 1e-5, a 512-primitive subtree
+    /// qualifies when its slot covers 0.5% of the scene box's area.
+    ///
+    /// Why: the budget is a share of the primitives, the same for every
+    /// scene, while what a graft saves is the entries rays make, which is
+    /// the slot's share of the scene's area (the chance that a ray through
+    /// the scene box enters it). Entries that many rays make are worth
+    /// copying whatever the budget. Their copies cost about 40 ns of build
+    /// time per primitive on this machine (the engine's, one thread) and
+    /// each entry they spare a ray about 100 instructions (some 35 ns), so
+    /// at 1e-5 a graft pays for itself after about 40 / (1e-5 * 35), some
+    /// 100,000 rays through the scene box: a tenth of one 1280x720
+    /// frame's primary rays.
+    ///
+    /// Measured (session 29, callgrind over the timed batch, instructions
+    /// per re-braided ray, diffuse and shadow, graft size 64 without this
+    /// against the defaults): the 2CylinderEngine 1,308.7 -> 1,213.0
+    /// (-7.3%) and 791.0 -> 781.6, nexuiz 1,683.5 -> 1,649.8 (-2.0%) and
+    /// 974.5 -> 971.2, openarena 859.6 -> 851.2, cocoa 648.7 -> 643.5,
+    /// ravenbridge and samurai within 0.2%; build instructions (callgrind
+    /// over `Scene::commit`, one thread) the engine +11.9%, openarena
+    /// +2.2%, nexuiz +1.6%, ravenbridge +0.9%, cocoa +0.7%, samurai +0.2%
+    /// (after 5-5.4% less from checking the object builds' inputs in their
+    /// bounds pass, the same session). At 5e-6 cocoa and
+    /// ravenbridge would gain 1.5-2% more for 4-5% more build everywhere.
+    pub graft_share_per_prim: f32,
     /// Lists longer than this are opened, binned and partitioned with
     /// data-parallel loops, and their halves built as parallel tasks.
     pub parallel_threshold: usize,
@@ -301,8 +334,9 @@ impl Default for RebraidParams {
             pull_entry_nodes: true,
             inline_leaf_blocks: true,
             inline_instanced_leaves: true,
-            graft_max_prims: 64,
+            graft_max_prims: 512,
             graft_budget: 0.1,
+            graft_share_per_prim: 1e-5,
             parallel_threshold: 1024,
             bake_single_instances: true,
         }
@@ -337,6 +371,11 @@ impl RebraidParams {
         if !(self.graft_budget >= 0.0 && self.graft_budget.is_finite()) {
             return Err(Error::InvalidParameter(
                 "graft_budget must be finite and >= 0".into(),
+            ));
+        }
+        if !(self.graft_share_per_prim >= 0.0 && self.graft_share_per_prim.is_finite()) {
+            return Err(Error::InvalidParameter(
+                "graft_share_per_prim must be finite and >= 0".into(),
             ));
         }
         if let RefBudget::Scaled {

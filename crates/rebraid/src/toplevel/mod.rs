@@ -15,7 +15,7 @@ use std::sync::Arc;
 use glam::Affine3A;
 use rayon::prelude::*;
 
-use crate::bvh::occlusion_order::{OcclusionStats, order_for_occlusion};
+use crate::bvh::occlusion_order::{OcclusionStats, order_for_occlusion_except};
 use crate::bvh::triangle4::{Triangle4, block_hit_record, intersect_blocks, leaf_occlusion};
 use crate::bvh::wide::{WIDE_EMPTY, WIDE_MAX_PRIMITIVES, decode_leaf, encode_leaf, is_leaf_ref};
 use crate::bvh::{
@@ -352,6 +352,11 @@ pub struct TopLevelAccel {
     /// `baked[k]`, entered as a directly placed object; hits on it report
     /// the object and the instance.
     pub baked: Vec<(u32, u32)>,
+    /// The last `grafted.len()` nodes of `wide` are grafted copies of
+    /// object nodes (see `graft_entries` in this module), left in the
+    /// object's occlusion order: for each, the entry it replaced and that
+    /// entry's slot box.
+    pub grafted: Vec<(RefEntry, Aabb)>,
 }
 
 /// How a committed top level is laid out and traversed, beyond the build.
@@ -369,6 +374,8 @@ pub struct TopLevelLayout {
     pub graft_max_prims: u32,
     /// See [`RebraidParams::graft_budget`].
     pub graft_budget: f32,
+    /// See [`RebraidParams::graft_share_per_prim`].
+    pub graft_share_per_prim: f32,
 }
 
 /// Copy the triangle blocks of the object leaves that top-level leaves
@@ -669,6 +676,16 @@ fn split_entry(
 /// primitives, 58-77% of what grafting every entry of up to 64 primitives
 /// saves on nexuiz, the engine and cocoa, and on the 3M-triangle library
 /// 19 MB of copies instead of 116 MB.
+///
+/// Past the budget, an entry whose slot box has at least `share_per_prim`
+/// of the root box's area per primitive under it is grafted all the same,
+/// up to `cap` primitives in all: rays through the scene enter such a
+/// slot often enough that the copy pays for itself after about 100,000 of
+/// them (see [`builder::RebraidParams::graft_share_per_prim`]).
+///
+/// Returns, for each new node (they are appended, in order), the entry it
+/// replaced and that entry's slot box: what `order_top_level` needs to
+/// leave the copies in the object's own occlusion order.
 fn graft_entries(
     wide: &mut WideBvh<8>,
     entry_refs: &mut Vec<TopRef>,
@@ -676,8 +693,9 @@ fn graft_entries(
     objects: &[Option<Arc<ObjectBvh>>],
     instances: &[InstanceXf],
     max_prims: u32,
-    budget: u64,
-) {
+    (budget, share_per_prim, cap): (u64, f32, u64),
+) -> Vec<(RefEntry, Aabb)> {
+    let mut grafted = Vec::new();
     // Depth of every node (the root is 1).
     let mut depth = vec![0u32; wide.nodes.len()];
     let mut stack = vec![(0u32, 1u32)];
@@ -712,15 +730,33 @@ fn graft_entries(
         }
     }
     candidates.sort_unstable_by(|a, b| b.0.total_cmp(&a.0).then((a.1, a.2).cmp(&(b.1, b.2))));
+    // Beyond the budget: candidates whose slot area per primitive is at
+    // least `share_per_prim` of the root box's, up to `cap` primitives.
+    let dense_from = share_per_prim * wide.root_bounds.half_area();
     let mut spent = 0u64;
-    let mut work = Vec::new();
-    for &(_, n, s) in &candidates {
+    candidates.retain(|&(density, n, s)| {
         let ri = decode_leaf(wide.nodes[n as usize].child[s as usize]).0;
         let prims = entry_refs[ri as usize].prims as u64;
-        if spent + prims > budget {
-            continue;
+        let dense = share_per_prim > 0.0 && density >= dense_from;
+        if spent + prims > budget && !(dense && spent + prims <= cap) {
+            return false;
         }
         spent += prims;
+        true
+    });
+    // Room for the copies at once (about a node per eight primitives and
+    // an entry per two; growing the arrays one push at a time copied them
+    // over and over: 4M instructions of the 2CylinderEngine's grafts).
+    let more = spent as usize;
+    wide.nodes.reserve(more / 8);
+    wide.binary_of.reserve(more / 8);
+    wide.slot_binary.reserve(more / 8);
+    depth.reserve(more / 8);
+    grafted.reserve(more / 8);
+    entries.reserve(more / 2);
+    entry_refs.reserve(more / 2);
+    let mut work = Vec::new();
+    for &(_, n, s) in &candidates {
         // The subtree, node by node: a grafted node's inner children are
         // grafted in turn (each within the subtree's primitives).
         work.clear();
@@ -735,6 +771,7 @@ fn graft_entries(
             }
             let slot_box = wide.nodes[n].child_bounds(s);
             let new = wide.nodes.len() as u32;
+            grafted.push((entries[ri as usize], slot_box));
             let mut node = WideNode::<8>::EMPTY;
             let split = (&mut *entry_refs, &mut *entries);
             split_entry(ri, &slot_box, split, objects, instances, |j, cri, b, w| {
@@ -752,6 +789,7 @@ fn graft_entries(
             wide.slot_binary[n][s] = WIDE_EMPTY;
         }
     }
+    grafted
 }
 
 /// Occlusion statistics of entry `r` seen from a top-level slot of box
@@ -804,13 +842,22 @@ fn ref_occlusion(
 
 /// Put the top level's slots in occlusion order (see
 /// [`crate::bvh::occlusion_order`]) by the stats of the refs under them.
+///
+/// The nodes `graft_entries` appended (from `first_grafted`, each with the
+/// entry it replaced and its slot box) are copies of object nodes, which
+/// the object's build already put in occlusion order: they are left as
+/// they are, each with the stats of the entry it replaced. Ordering them
+/// again took about 700 instructions per node, a quarter of what grafting
+/// the 2CylinderEngine's dense entries cost (callgrind, session 29).
 fn order_top_level(
     wide: &mut WideBvh<8>,
     entries: &[RefEntry],
     objects: &[Option<Arc<ObjectBvh>>],
     instances: &[InstanceXf],
+    first_grafted: usize,
+    grafted: &[(RefEntry, Aabb)],
 ) -> Vec<OcclusionStats> {
-    order_for_occlusion(wide, |leaf, slot_box| {
+    let leaf = |leaf: u32, slot_box: &Aabb| {
         let (first, count) = decode_leaf(leaf);
         let (mut miss, mut cost) = (1.0f32, 0.0f32);
         for r in &entries[first as usize..(first + count) as usize] {
@@ -819,7 +866,12 @@ fn order_top_level(
             cost += st.cost;
         }
         OcclusionStats::from_miss(miss, cost)
-    })
+    };
+    let fixed = |n: usize| {
+        let (r, slot_box) = &grafted[n - first_grafted];
+        ref_occlusion(objects, instances, r, slot_box, true)
+    };
+    order_for_occlusion_except(wide, leaf, first_grafted, fixed)
 }
 
 /// The best hit so far inside a top-level traversal: (t, u, v, hit
@@ -1611,26 +1663,32 @@ impl TopLevelAccel {
                 node: r.node,
             })
             .collect();
+        let mut grafted = Vec::new();
         if let Some(w) = &mut wide {
             if layout.pull_entry_nodes {
                 pull_into_top_level(w, &mut entry_refs, &mut entries, &objects, &instances);
             }
+            let first_grafted = w.nodes.len();
             if layout.graft_max_prims > 0 && layout.graft_budget > 0.0 {
                 // Primitives of the distinct objects, each counted once.
                 let prims: u64 = objects.iter().flatten().map(|o| o.mesh.len() as u64).sum();
-                graft_entries(
+                grafted = graft_entries(
                     w,
                     &mut entry_refs,
                     &mut entries,
                     &objects,
                     &instances,
                     layout.graft_max_prims,
-                    (layout.graft_budget as f64 * prims as f64) as u64,
+                    (
+                        (layout.graft_budget as f64 * prims as f64) as u64,
+                        layout.graft_share_per_prim,
+                        prims,
+                    ),
                 );
             }
             // Leaves index the entries directly (the tree has no index array).
             w.prim_count = entry_refs.len();
-            order_top_level(w, &entries, &objects, &instances);
+            order_top_level(w, &entries, &objects, &instances, first_grafted, &grafted);
         }
         let block_base = entries.len() as u32;
         let (blocks, block_entry) = match &mut wide {
@@ -1660,6 +1718,7 @@ impl TopLevelAccel {
             block_normal_scale: Vec::new(),
             block_base,
             baked: Vec::new(),
+            grafted,
         };
         accel.place_blocks();
         accel
@@ -1668,10 +1727,21 @@ impl TopLevelAccel {
     /// Fill `block_placement` and `block_normal_scale` from `block_entry`
     /// and the baked placements.
     fn place_blocks(&mut self) {
+        // A leaf's blocks share their entry: each entry's values are made
+        // once (an instanced entry's scale is a determinant).
+        type Placed = ((u32, u32), f32);
+        let mut last: Option<(u32, Placed)> = None;
         let (placement, scale) = self
             .block_entry
             .iter()
-            .map(|&ri| (self.entry_placement(ri), self.block_entry_normal_scale(ri)))
+            .map(|&ri| match last {
+                Some((r, v)) if r == ri => v,
+                _ => {
+                    let v = (self.entry_placement(ri), self.block_entry_normal_scale(ri));
+                    last = Some((ri, v));
+                    v
+                }
+            })
             .unzip();
         self.block_placement = placement;
         self.block_normal_scale = scale;
@@ -2177,7 +2247,14 @@ impl TopLevelAccel {
             }
             wide.validate(&entry_boxes)?;
             let mut ordered = wide.clone();
-            order_top_level(&mut ordered, &self.entries, &self.objects, &self.instances);
+            order_top_level(
+                &mut ordered,
+                &self.entries,
+                &self.objects,
+                &self.instances,
+                wide.nodes.len() - self.grafted.len(),
+                &self.grafted,
+            );
             if ordered != *wide {
                 return Err("top-level slots are not in occlusion order".into());
             }
