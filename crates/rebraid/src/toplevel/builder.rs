@@ -252,10 +252,9 @@ pub struct RebraidParams {
     /// scale 3 (3M triangles, most entries small) grafting every entry of
     /// up to 64 primitives copied 116 MB and took 90-100 ms, hence
     /// [`RebraidParams::graft_budget`] and, since session 29,
-    /// [`RebraidParams::graft_share_per_prim`]: with those two choosing
-    /// what is copied, the size only bounds one graft, and the default is
-    /// 512 (64 until session 29; the engine's dense entries lie in
-    /// subtrees of 65-512 primitives).
+    /// [`RebraidParams::graft_share_per_prim`] (off by default), which
+    /// wants a size of 512: the engine's dense entries lie in subtrees of
+    /// 65-512 primitives.
     pub graft_max_prims: u32,
     /// How many primitives the grafts may copy in all, per primitive of
     /// the distinct objects (each object counted once): the entries a ray
@@ -272,8 +271,8 @@ pub struct RebraidParams {
     /// Entries whose top-level slot box has at least this share of the
     /// top level's root box area per primitive under the entry are grafted
     /// past [`RebraidParams::graft_budget`], up to the distinct primitives
-    /// in all; 0 turns it off. At the default, 1e-5, a 512-primitive subtree
-    /// qualifies when its slot covers 0.5% of the scene box's area.
+    /// in all; 0 (the default) turns it off. At 1e-5 a 512-primitive
+    /// subtree qualifies when its slot covers 0.5% of the scene box's area.
     ///
     /// Why: the budget is a share of the primitives, the same for every
     /// scene, while what a graft saves is the entries rays make, which is
@@ -287,15 +286,26 @@ pub struct RebraidParams {
     /// frame's primary rays.
     ///
     /// Measured (session 29, callgrind over the timed batch, instructions
-    /// per re-braided ray, diffuse and shadow, graft size 64 without this
-    /// against the defaults): the 2CylinderEngine 1,308.7 -> 1,213.0
+    /// per re-braided ray, diffuse and shadow, the defaults against 1e-5
+    /// with a graft size of 512): the 2CylinderEngine 1,308.7 -> 1,213.0
     /// (-7.3%) and 791.0 -> 781.6, nexuiz 1,683.5 -> 1,649.8 (-2.0%) and
     /// 974.5 -> 971.2, openarena 859.6 -> 851.2, cocoa 648.7 -> 643.5,
     /// ravenbridge and samurai within 0.2%; build instructions (callgrind
     /// over `Scene::commit`, one thread) the engine +11.9%, openarena
     /// +2.2%, nexuiz +1.6%, ravenbridge +0.9%, cocoa +0.7%, samurai +0.2%
     /// (after 5-5.4% less from checking the object builds' inputs in their
-    /// bounds pass, the same session). At 5e-6 cocoa and
+    /// bounds pass, the same session).
+    ///
+    /// Why it is off: the instructions saved did not come out as time.
+    /// The engine's diffuse rays in wall time (`tools/ab-wall.sh 6`, one
+    /// thread, 480x270, the defaults as control) 1.013 against a control
+    /// of 0.983, its first-level and last-level cache misses per ray the
+    /// same (callgrind's model); in the sixteenth run of the figure, with
+    /// it on, the engine's diffuse rays over `embree-flat` 0.97 (0.96 in
+    /// the fifteenth, without) and its build over `embree-two-level` 1.05
+    /// at one thread and 0.95 at two (the grafts run on one thread). For a
+    /// scene traced with many rays per build and built on one thread it
+    /// may still pay: `--graft-max-prims 512 --graft-share-per-prim 1e-5`. At 5e-6 cocoa and
     /// ravenbridge would gain 1.5-2% more for 4-5% more build everywhere.
     pub graft_share_per_prim: f32,
     /// Lists longer than this are opened, binned and partitioned with
@@ -334,9 +344,9 @@ impl Default for RebraidParams {
             pull_entry_nodes: true,
             inline_leaf_blocks: true,
             inline_instanced_leaves: true,
-            graft_max_prims: 512,
+            graft_max_prims: 64,
             graft_budget: 0.1,
-            graft_share_per_prim: 1e-5,
+            graft_share_per_prim: 0.0,
             parallel_threshold: 1024,
             bake_single_instances: true,
         }
