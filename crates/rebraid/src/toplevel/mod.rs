@@ -2246,13 +2246,33 @@ impl TopLevelAccel {
                 }
             }
             wide.validate(&entry_boxes)?;
+            // Grafted nodes are exempt from the order check below: each must
+            // copy the object node its entry entered, slot for slot.
+            let first_grafted = wide.nodes.len().checked_sub(self.grafted.len());
+            let first_grafted = first_grafted.ok_or("more grafted nodes than nodes")?;
+            for (k, (e, _)) in self.grafted.iter().enumerate() {
+                let copied = &wide.nodes[first_grafted + k];
+                let source = self
+                    .objects
+                    .get(e.object as usize)
+                    .and_then(|o| o.as_deref())
+                    .and_then(|o| o.wide.as_ref())
+                    .filter(|_| !is_leaf_ref(e.wide))
+                    .and_then(|w| w.wide.nodes.get(e.wide as usize));
+                if source.map(|s| s.child_count()) != Some(copied.child_count()) {
+                    return Err(format!(
+                        "grafted node {} is no copy of its entry's node",
+                        first_grafted + k
+                    ));
+                }
+            }
             let mut ordered = wide.clone();
             order_top_level(
                 &mut ordered,
                 &self.entries,
                 &self.objects,
                 &self.instances,
-                wide.nodes.len() - self.grafted.len(),
+                first_grafted,
                 &self.grafted,
             );
             if ordered != *wide {
