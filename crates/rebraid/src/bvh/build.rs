@@ -28,7 +28,9 @@
 use glam::{BVec3A, Vec3, Vec3A};
 use rayon::prelude::*;
 
-use super::binning::{BinBox, BinMapping, BinRange, Bins, MAX_BINS, SplitCandidate, with_bins};
+use super::binning::{
+    BinBox, BinMapping, BinRange, Bins, MAX_BINS, SplitCandidate, finite_lanes, with_bins,
+};
 use super::{Bvh, BvhNode};
 use crate::{Aabb, Error};
 
@@ -294,11 +296,12 @@ impl BvhNode {
 /// `is_finite` called out of line) took 3-4% of a one-thread nexuiz
 /// re-braided build in `perf` (session 29).
 fn range_bounds(boxes: &[BinBox], centroids: &[Vec3A]) -> (Aabb, Aabb, bool) {
-    // `|v| < inf` is false for NaN and infinities alike.
-    let finite = |v: Vec3A| v.abs().cmplt(Vec3A::INFINITY);
     let fold = |(b, c, ok): (BinBox, BinBox, BVec3A), (x, y): (&BinBox, &Vec3A)| {
-        let good = finite(x.min) & finite(x.max) & x.min.cmple(x.max) & finite(*y);
-        (b.union(*x), c.grow(*y), ok & good)
+        (
+            b.union(*x),
+            c.grow(*y),
+            ok & x.valid_lanes() & finite_lanes(*y),
+        )
     };
     let join = |(a, b, p): (BinBox, BinBox, BVec3A), (c, d, q): (BinBox, BinBox, BVec3A)| {
         (a.union(c), b.union(d), p & q)

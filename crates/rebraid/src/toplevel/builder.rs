@@ -294,7 +294,8 @@ pub struct RebraidParams {
     /// over `Scene::commit`, one thread) the engine +11.9%, openarena
     /// +2.2%, nexuiz +1.6%, ravenbridge +0.9%, cocoa +0.7%, samurai +0.2%
     /// (after 5-5.4% less from checking the object builds' inputs in their
-    /// bounds pass, the same session).
+    /// bounds pass, the same session). At 5e-6 cocoa and ravenbridge would
+    /// gain 1.5-2% more for 4-5% more build everywhere.
     ///
     /// Why it is off: the instructions saved did not come out as time.
     /// The engine's diffuse rays in wall time (`tools/ab-wall.sh 6`, one
@@ -305,8 +306,7 @@ pub struct RebraidParams {
     /// the fifteenth, without) and its build over `embree-two-level` 1.05
     /// at one thread and 0.95 at two (the grafts run on one thread). For a
     /// scene traced with many rays per build and built on one thread it
-    /// may still pay: `--graft-max-prims 512 --graft-share-per-prim 1e-5`. At 5e-6 cocoa and
-    /// ravenbridge would gain 1.5-2% more for 4-5% more build everywhere.
+    /// may still pay: `--graft-max-prims 512 --graft-share-per-prim 1e-5`.
     pub graft_share_per_prim: f32,
     /// Lists longer than this are opened, binned and partitioned with
     /// data-parallel loops, and their halves built as parallel tasks.
