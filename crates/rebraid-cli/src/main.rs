@@ -117,6 +117,16 @@ struct SceneOpts {
     /// Largest leaf of object (and flat) BVHs.
     #[arg(long)]
     max_leaf: Option<u32>,
+    /// Two-level modes: trace the objects placed directly (not instanced,
+    /// without instances) from one BVH over all their triangles, as a
+    /// static scene; a change to any of them rebuilds it.
+    #[arg(long)]
+    merge_placed: bool,
+    /// Re-braiding: keep the merged BVH (`--merge-placed`) behind entries
+    /// like any object, within the graft size and budget (by default the
+    /// top level takes its whole tree).
+    #[arg(long)]
+    no_graft_merged: bool,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -188,6 +198,8 @@ impl SceneOpts {
         if let Some(m) = self.max_leaf {
             p.object_build.max_leaf_size = m;
         }
+        p.merge_placed = self.merge_placed;
+        r.graft_merged = !self.no_graft_merged;
         p.object_build.check()?;
         r.check()?;
         Ok(p)
@@ -214,6 +226,8 @@ impl SceneOpts {
                 "--no-inline-instanced-leaves",
                 self.no_inline_instanced_leaves,
             ),
+            ("--merge-placed", self.merge_placed),
+            ("--no-graft-merged", self.no_graft_merged),
         ];
         v.extend(flags.iter().filter(|f| f.1).map(|f| f.0.to_string()));
         let values = [

@@ -168,6 +168,32 @@ fn run(file: &str) {
         answers.push((hits, occ));
     }
 
+    // Every object merged into one BVH (`SceneParams::merge_placed`), in
+    // both two-level modes: hits still name each object's own primitives.
+    scene.params.rebraid = RebraidParams::default();
+    scene.params.merge_placed = true;
+    let non_empty = model
+        .objects
+        .values()
+        .filter(|(m, _)| !m.is_empty())
+        .count();
+    for mode in [AccelMode::TwoLevel, AccelMode::Rebraided] {
+        scene.set_mode(mode);
+        let rep = scene.commit().unwrap();
+        assert_eq!(rep.objects_merged, non_empty, "{file} {mode:?} merged");
+        assert!(
+            rep.merged_rebuilt == (mode == AccelMode::TwoLevel),
+            "{file}"
+        );
+        check_top(top(&scene), &model, &format!("{file} {mode:?} merged"));
+        eprintln!("{file}: {mode:?} merged: SAH {:.2}", scene.stats().sah_cost);
+        let mut hits = vec![None; rays.len()];
+        scene.intersect_batch(&rays, &mut hits);
+        let mut occ = vec![false; rays.len()];
+        scene.occluded_batch(&rays, &mut occ);
+        answers.push((hits, occ));
+    }
+
     // Every object is placed directly: the modes intersect the same
     // world-space triangles, so t is bit-identical and only exact ties may
     // pick another triangle.
@@ -176,7 +202,8 @@ fn run(file: &str) {
     eprintln!("{file}: {hit_count} of {} rays hit", rays.len());
     assert!(hit_count * 4 > rays.len(), "{file}: only {hit_count} hits");
     for (m, (hits, occ)) in answers.iter().enumerate().skip(1) {
-        // Configs: 1 two-level, 2 rebraided, then the parameter variations.
+        // Configs: 1 two-level, 2 rebraided, then the parameter variations
+        // and the merged configurations.
         let mode = format!("config {m}");
         let mut ties = 0;
         for (i, r) in rays.iter().enumerate() {

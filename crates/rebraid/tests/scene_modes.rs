@@ -681,3 +681,109 @@ fn a_copied_object_leaf_counts_as_one_leaf() {
     // The root (two leaf slots) and the one leaf the ray enters.
     assert_eq!((counted.inner_visited, counted.leaves_visited), (1, 1));
 }
+
+/// `SceneParams::merge_placed`: the objects placed directly traced from one
+/// BVH over all their triangles. Random scenes (objects placed and also
+/// instanced, which stay out, prototypes, mirrored instances), the library
+/// case with and without instances, and camera rays in packets, in every
+/// mode with every kernel against the brute force; hits name each member's
+/// own object and primitive (bit-identical to the flat mode without
+/// instances).
+#[test]
+fn merged_placed_objects_match_brute_force_in_every_mode() {
+    let merged = |kernel| SceneParams {
+        kernel: Some(kernel),
+        merge_placed: true,
+        ..params(AccelMode::Flat)
+    };
+    let cases = [
+        (random_model(&mut rng(900), &Gen::default()), "random"),
+        (
+            random_model(&mut rng(901), &clustered_with_instances()),
+            "clustered",
+        ),
+        (library_model(902, 16, 200, 0), "library"),
+        (library_model(903, 10, 150, 6), "library+instances"),
+    ];
+    for (k, (model, what)) in cases.iter().enumerate() {
+        let world = model.world();
+        let mut rays = random_rays(&mut rng(904), &world, 1200, SCENE_LO, SCENE_HI);
+        if k < 2 {
+            // Packets (the library's soups leave most camera rays unhit).
+            rays.extend(camera_rays(Vec3::new(9.3, 30.0, 11.1), 8.0));
+        }
+        for kernel in rebraid::bvh::Kernel::available() {
+            let what = format!("merged {what} {kernel:?}");
+            all_modes_vs_brute_with(model, &rays, &what, merged(kernel));
+        }
+        // The members: placed, not empty, without instances.
+        let mut scene = model.to_scene(merged(rebraid::bvh::Kernel::best()));
+        scene.set_mode(AccelMode::Rebraided);
+        let rep = scene.commit().unwrap();
+        let instanced: std::collections::BTreeSet<u32> =
+            model.instances.values().map(|&(o, _)| o).collect();
+        let members = model
+            .objects
+            .iter()
+            .filter(|(id, (m, placed))| *placed && !m.is_empty() && !instanced.contains(id))
+            .count();
+        assert!(members >= 2, "{what}: the case must merge");
+        assert_eq!(rep.objects_merged, members, "{what}");
+        assert!(rep.merged_rebuilt, "{what}");
+        assert_eq!(
+            rep.objects_rebuilt.len() + members,
+            model
+                .objects
+                .values()
+                .filter(|(m, _)| !m.is_empty())
+                .count()
+                + model.objects.values().filter(|(m, _)| m.is_empty()).count(),
+            "{what}: every other object built"
+        );
+        let rebraid::toplevel::MergedSlot { slot, origins } =
+            top(&scene).merged.clone().expect("merged");
+        assert_eq!(
+            slot as usize,
+            model.objects.len(),
+            "{what}: slot after the objects"
+        );
+        assert_eq!(
+            origins.len(),
+            model
+                .objects
+                .iter()
+                .filter(|(id, (_, placed))| *placed && !instanced.contains(id))
+                .map(|(_, (m, _))| m.len())
+                .sum::<usize>(),
+            "{what}"
+        );
+    }
+    // Without instances the merged scene answers as the flat mode does,
+    // bit for bit (up to exact ties).
+    let (model, _) = &cases[2];
+    let world = model.world();
+    let rays = random_rays(&mut rng(905), &world, 1500, SCENE_LO, SCENE_HI);
+    let mut scene = model.to_scene(params(AccelMode::Flat));
+    scene.commit().unwrap();
+    let mut flat = vec![None; rays.len()];
+    scene.intersect_batch(&rays, &mut flat);
+    scene.params.merge_placed = true;
+    scene.set_mode(AccelMode::Rebraided);
+    scene.commit().unwrap();
+    let mut got = vec![None; rays.len()];
+    scene.intersect_batch(&rays, &mut got);
+    for (i, (a, b)) in flat.iter().zip(&got).enumerate() {
+        assert_eq!(a.map(|h| h.t), b.map(|h| h.t), "ray {i}");
+        if let (Some(a), Some(b)) = (a, b)
+            && (a.object_id, a.prim_id) != (b.object_id, b.prim_id)
+        {
+            assert!(
+                world
+                    .all_hits(&rays[i])
+                    .iter()
+                    .any(|h| (h.object, h.prim) == (b.object_id, b.prim_id) && h.t == a.t),
+                "ray {i}: {a:?} vs flat {b:?} is no tie"
+            );
+        }
+    }
+}

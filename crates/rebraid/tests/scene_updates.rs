@@ -8,7 +8,9 @@ mod scene_common;
 use rand::Rng;
 use rebraid::glam::{Affine3A, Mat3, Vec3};
 use rebraid::scene::Accel;
-use rebraid::{AccelMode, CommitReport, Error, Ray, Scene, SceneParams, TriangleMesh};
+use rebraid::{
+    AccelMode, CommitReport, Error, Ray, Scene, SceneParams, TriangleMesh, UpdatePolicy,
+};
 use scene_common::*;
 
 fn params(mode: AccelMode) -> SceneParams {
@@ -591,4 +593,250 @@ fn needs_commit_is_false_after_a_flat_commit() {
         .unwrap();
     s.commit().unwrap();
     assert!(!s.needs_commit(), "needs_commit() after a flat commit");
+}
+
+/// The merged BVH of the objects placed directly
+/// (`SceneParams::merge_placed`) through edits, in both two-level modes: it
+/// is rebuilt exactly when the members change, the members' own BVHs are
+/// not built, an object leaves it for good at its first edit and leaves it
+/// while it has an instance, the refit policy or is not placed (its own BVH
+/// is then built), a lone member is no merge, and the option off builds
+/// every member's own BVH. Answers and reachability are checked against the
+/// model after every commit.
+#[test]
+fn merged_objects_are_rebuilt_exactly_when_members_change() {
+    let sorted = |mut v: Vec<u32>| {
+        v.sort_unstable();
+        v
+    };
+    for mode in [AccelMode::TwoLevel, AccelMode::Rebraided] {
+        let mut rng = rng(70);
+        let g = Gen {
+            clustered: 4,
+            scattered: 1,
+            grids: 1,
+            tris: 80,
+            prototypes: 2,
+            instances: 6,
+            mirror: true,
+        };
+        let mut model = random_model(&mut rng, &g);
+        let mut scene = model.to_scene(SceneParams {
+            merge_placed: true,
+            ..params(mode)
+        });
+        // Objects kept out for good: edited after a commit took them in (and
+        // the refitted one).
+        let mut edited = std::collections::BTreeSet::<u32>::new();
+        // The members the scene should merge, and their triangles.
+        let members = |m: &Model, edited: &std::collections::BTreeSet<u32>| -> Vec<u32> {
+            let instanced: std::collections::BTreeSet<u32> =
+                m.instances.values().map(|&(o, _)| o).collect();
+            m.objects
+                .iter()
+                .filter(|(id, (mesh, placed))| {
+                    *placed && !mesh.is_empty() && !instanced.contains(id) && !edited.contains(id)
+                })
+                .map(|(&id, _)| id)
+                .collect()
+        };
+        let tris =
+            |m: &Model, ids: &[u32]| -> usize { ids.iter().map(|i| m.objects[i].0.len()).sum() };
+        let mut seed = 80;
+        let mut check = |scene: &Scene,
+                         model: &Model,
+                         edited: &std::collections::BTreeSet<u32>,
+                         rep: &CommitReport,
+                         what: &str| {
+            let what = format!("{mode:?} {what}");
+            let m = members(model, edited);
+            let m = if m.len() < 2 { vec![] } else { m };
+            assert_eq!(rep.objects_merged, m.len(), "{what}: members");
+            assert_eq!(
+                rep.objects_reused,
+                model.objects.len()
+                    - rep.objects_rebuilt.len()
+                    - rep.objects_refitted.len()
+                    - m.len(),
+                "{what}: reused"
+            );
+            match scene.accel() {
+                Accel::TopLevel(t) => {
+                    assert_eq!(t.merged.is_some(), !m.is_empty(), "{what}");
+                    check_top(t, model, &what);
+                }
+                _ => panic!("{what}: no top level"),
+            }
+            let world = model.world();
+            seed += 1;
+            let rays = random_rays(
+                &mut scene_common::rng(seed),
+                &world,
+                300,
+                SCENE_LO,
+                SCENE_HI,
+            );
+            check_scene(scene, &world, &rays, model.instances.is_empty(), &what);
+        };
+        let all_members = members(&model, &edited);
+        assert!(all_members.len() >= 4, "the model must merge");
+
+        let rep = scene.commit().unwrap();
+        check(&scene, &model, &edited, &rep, "first commit");
+        assert!(rep.merged_rebuilt);
+        let others: Vec<u32> = model
+            .objects
+            .keys()
+            .copied()
+            .filter(|i| !all_members.contains(i))
+            .collect();
+        assert_eq!(sorted(rep.objects_rebuilt.clone()), others, "{mode:?}");
+
+        let rep = scene.commit().unwrap();
+        check(&scene, &model, &edited, &rep, "no edits");
+        assert!(
+            !rep.merged_rebuilt && rep.objects_rebuilt.is_empty(),
+            "{mode:?}"
+        );
+
+        // An instance moves: nothing rebuilt.
+        let inst = *model.instances.keys().next().unwrap();
+        let xf = random_transform(&mut rng, SCENE_LO, SCENE_HI, true);
+        scene.set_instance_transform(inst, xf).unwrap();
+        model.instances.get_mut(&inst).unwrap().1 = xf;
+        let rep = scene.commit().unwrap();
+        check(&scene, &model, &edited, &rep, "instance moved");
+        assert!(
+            !rep.merged_rebuilt && rep.objects_rebuilt.is_empty(),
+            "{mode:?}"
+        );
+
+        // A member's first edit takes it out for good: its own BVH and
+        // the merged one without it; its next edit only its own.
+        let m0 = all_members[0];
+        for first in [true, false] {
+            let v = jitter(&mut rng, &model.objects[&m0].0);
+            scene.set_vertices(m0, &v).unwrap();
+            model.objects.get_mut(&m0).unwrap().0.positions = v;
+            edited.insert(m0);
+            let rep = scene.commit().unwrap();
+            check(&scene, &model, &edited, &rep, "member's vertices");
+            assert_eq!(rep.merged_rebuilt, first, "{mode:?}");
+            assert_eq!(rep.objects_rebuilt, vec![m0], "{mode:?}");
+            // The merged members and this one, or this one.
+            let want = if first {
+                tris(&model, &all_members)
+            } else {
+                tris(&model, &[m0])
+            };
+            assert_eq!(rep.triangles_rebuilt, want, "{mode:?}");
+        }
+        // An object edited before its first commit is still merged.
+        let c = rand_in(&mut rng, SCENE_LO, SCENE_HI);
+        let fresh = model.add_object(&mut scene, soup(&mut rng, 30, c - 2.0, c + 2.0, 0.8), true);
+        let v = jitter(&mut rng, &model.objects[&fresh].0);
+        scene.set_vertices(fresh, &v).unwrap();
+        model.objects.get_mut(&fresh).unwrap().0.positions = v;
+        let rep = scene.commit().unwrap();
+        check(
+            &scene,
+            &model,
+            &edited,
+            &rep,
+            "edited before its first commit",
+        );
+        assert!(
+            rep.merged_rebuilt && rep.objects_rebuilt.is_empty(),
+            "{mode:?}"
+        );
+
+        // The refit policy takes a member out: its own BVH is built.
+        let m1 = all_members[1];
+        scene.set_update_policy(m1, UpdatePolicy::Refit).unwrap();
+        edited.insert(m1);
+        assert!(scene.needs_commit(), "{mode:?}");
+        let rep = scene.commit().unwrap();
+        check(&scene, &model, &edited, &rep, "member refitted");
+        assert!(rep.merged_rebuilt, "{mode:?}");
+        assert_eq!(rep.objects_rebuilt, vec![m1], "{mode:?}");
+        // ... and its moves refit it, leaving the merged BVH alone.
+        let v = jitter(&mut rng, &model.objects[&m1].0);
+        scene.set_vertices(m1, &v).unwrap();
+        model.objects.get_mut(&m1).unwrap().0.positions = v;
+        let rep = scene.commit().unwrap();
+        check(&scene, &model, &edited, &rep, "refitted object moved");
+        assert!(!rep.merged_rebuilt, "{mode:?}");
+        assert_eq!(rep.objects_refitted, vec![m1], "{mode:?}");
+
+        // An instance of a member takes it out too.
+        let m2 = all_members[2];
+        let xf = random_transform(&mut rng, SCENE_LO, SCENE_HI, true);
+        model.add_instance(&mut scene, m2, xf);
+        let rep = scene.commit().unwrap();
+        check(&scene, &model, &edited, &rep, "member instanced");
+        assert!(rep.merged_rebuilt, "{mode:?}");
+        assert_eq!(rep.objects_rebuilt, vec![m2], "{mode:?}");
+
+        // A new placed object joins; removing a member rebuilds.
+        let c = rand_in(&mut rng, SCENE_LO, SCENE_HI);
+        let added = model.add_object(&mut scene, soup(&mut rng, 40, c - 2.0, c + 2.0, 0.8), true);
+        let rep = scene.commit().unwrap();
+        check(&scene, &model, &edited, &rep, "object added");
+        assert!(
+            rep.merged_rebuilt && rep.objects_rebuilt.is_empty(),
+            "{mode:?}"
+        );
+        assert!(members(&model, &edited).contains(&added));
+        let m3 = all_members[3];
+        scene.remove_object(m3).unwrap();
+        model.objects.remove(&m3);
+        model.instances.retain(|_, (o, _)| *o != m3);
+        let rep = scene.commit().unwrap();
+        check(&scene, &model, &edited, &rep, "member removed");
+        assert!(rep.merged_rebuilt, "{mode:?}");
+
+        // The flat mode and back: the merged BVH is kept.
+        scene.set_mode(AccelMode::Flat);
+        scene.commit().unwrap();
+        scene.set_mode(mode);
+        let rep = scene.commit().unwrap();
+        check(&scene, &model, &edited, &rep, "back from flat");
+        assert!(
+            !rep.merged_rebuilt && rep.objects_rebuilt.is_empty(),
+            "{mode:?}"
+        );
+
+        // Down to one member: no merge, its own BVH built.
+        let mut left = members(&model, &edited);
+        while left.len() > 1 {
+            let id = left.pop().unwrap();
+            scene.set_object_placed(id, false).unwrap();
+            model.objects.get_mut(&id).unwrap().1 = false;
+        }
+        let rep = scene.commit().unwrap();
+        check(&scene, &model, &edited, &rep, "one member left");
+        assert!(!rep.merged_rebuilt, "{mode:?}");
+        assert!(rep.objects_rebuilt.contains(&left[0]), "{mode:?}");
+
+        // Placed again, then the option off: every member's own BVH.
+        for (&id, (_, placed)) in model.objects.iter_mut() {
+            if !*placed && (all_members.contains(&id) || id == fresh || id == added) {
+                scene.set_object_placed(id, true).unwrap();
+                *placed = true;
+            }
+        }
+        let rep = scene.commit().unwrap();
+        check(&scene, &model, &edited, &rep, "placed again");
+        assert!(rep.merged_rebuilt, "{mode:?}");
+        let now = members(&model, &edited);
+        scene.params.merge_placed = false;
+        let rep = scene.commit().unwrap();
+        assert_eq!(rep.objects_merged, 0, "{mode:?}");
+        assert_eq!(
+            sorted(rep.objects_rebuilt.clone()),
+            now,
+            "{mode:?}: option off"
+        );
+        check_top(top(&scene), &model, "option off");
+    }
 }

@@ -357,6 +357,22 @@ pub struct TopLevelAccel {
     /// object's occlusion order: for each, the entry it replaced and that
     /// entry's slot box.
     pub grafted: Vec<(RefEntry, Aabb)>,
+    /// The slot of a BVH over several objects placed directly (see
+    /// [`crate::scene::SceneParams::merge_placed`]), entered as one object
+    /// placed directly, and per primitive of it the (object, primitive) a
+    /// hit on it reports. The slot is below [`TopLevelAccel::baked_base`].
+    pub merged: Option<MergedSlot>,
+}
+
+/// A BVH over several objects placed directly, in one object slot of a top
+/// level (see [`crate::scene::SceneParams::merge_placed`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct MergedSlot {
+    /// Its slot in [`TopLevelAccel::objects`] (below the baked placements').
+    pub slot: u32,
+    /// Per primitive of the slot's BVH, the (object, primitive) a hit on it
+    /// reports.
+    pub origins: Arc<[(u32, u32)]>,
 }
 
 /// How a committed top level is laid out and traversed, beyond the build.
@@ -376,6 +392,15 @@ pub struct TopLevelLayout {
     pub graft_budget: f32,
     /// See [`RebraidParams::graft_share_per_prim`].
     pub graft_share_per_prim: f32,
+    /// An object slot whose entries (placed directly) are grafted whole,
+    /// whatever their size and outside the budget: a scene's merged BVH
+    /// (see [`crate::scene::SceneParams::merge_placed`]), which stands for
+    /// the many objects that re-braiding would have opened, so that the
+    /// top level takes its whole tree. On nexuiz (every object merged)
+    /// 1,462.5 -> 1,374.3 instructions per diffuse ray, wall time 1.05
+    /// (docs/performance.md, session 30), for a copy of its nodes and
+    /// blocks (15.1 -> 23.7 MB).
+    pub graft_whole: Option<u32>,
 }
 
 /// Copy the triangle blocks of the object leaves that top-level leaves
@@ -693,7 +718,7 @@ fn graft_entries(
     objects: &[Option<Arc<ObjectBvh>>],
     instances: &[InstanceXf],
     max_prims: u32,
-    (budget, share_per_prim, cap): (u64, f32, u64),
+    (budget, share_per_prim, cap, whole): (u64, f32, u64, Option<u32>),
 ) -> Vec<(RefEntry, Aabb)> {
     let mut grafted = Vec::new();
     // Depth of every node (the root is 1).
@@ -711,6 +736,8 @@ fn graft_entries(
     let graftable = |c: u32, entries: &[RefEntry]| -> Option<u32> {
         entered_inner_node(c, entries, objects).map(|(ri, _)| ri)
     };
+    // Entries of the slot grafted whole (see `TopLevelLayout::graft_whole`).
+    let is_whole = |e: &RefEntry| whole == Some(e.object) && e.instance == INVALID_ID;
     // Candidates by the chance that a ray reaching the top level enters
     // them (their slot's area) per primitive copied: most entries saved
     // for the budget first. Ties by slot, so the order is deterministic.
@@ -722,7 +749,7 @@ fn graft_entries(
         for s in 0..node.child_count() {
             if let Some(ri) = graftable(node.child[s], entries) {
                 let prims = entry_refs[ri as usize].prims;
-                if prims <= max_prims {
+                if prims <= max_prims || is_whole(&entries[ri as usize]) {
                     let area = node.child_bounds(s).half_area();
                     candidates.push((area / prims.max(1) as f32, n as u32, s as u32));
                 }
@@ -733,10 +760,14 @@ fn graft_entries(
     // Beyond the budget: candidates whose slot area per primitive is at
     // least `share_per_prim` of the root box's, up to `cap` primitives.
     let dense_from = share_per_prim * wide.root_bounds.half_area();
-    let mut spent = 0u64;
+    let (mut spent, mut whole_prims) = (0u64, 0u64);
     candidates.retain(|&(density, n, s)| {
         let ri = decode_leaf(wide.nodes[n as usize].child[s as usize]).0;
         let prims = entry_refs[ri as usize].prims as u64;
+        if is_whole(&entries[ri as usize]) {
+            whole_prims += prims;
+            return true;
+        }
         let dense = share_per_prim > 0.0 && density >= dense_from;
         if spent + prims > budget && !(dense && spent + prims <= cap) {
             return false;
@@ -747,7 +778,7 @@ fn graft_entries(
     // Room for the copies at once (about a node per eight primitives and
     // an entry per two; growing the arrays one push at a time copied them
     // over and over: 4M instructions of the 2CylinderEngine's grafts).
-    let more = spent as usize;
+    let more = (spent + whole_prims) as usize;
     wide.nodes.reserve(more / 8);
     wide.binary_of.reserve(more / 8);
     wide.slot_binary.reserve(more / 8);
@@ -1669,7 +1700,9 @@ impl TopLevelAccel {
                 pull_into_top_level(w, &mut entry_refs, &mut entries, &objects, &instances);
             }
             let first_grafted = w.nodes.len();
-            if layout.graft_max_prims > 0 && layout.graft_budget > 0.0 {
+            if (layout.graft_max_prims > 0 && layout.graft_budget > 0.0)
+                || layout.graft_whole.is_some()
+            {
                 // Primitives of the distinct objects, each counted once.
                 let prims: u64 = objects.iter().flatten().map(|o| o.mesh.len() as u64).sum();
                 grafted = graft_entries(
@@ -1683,6 +1716,7 @@ impl TopLevelAccel {
                         (layout.graft_budget as f64 * prims as f64) as u64,
                         layout.graft_share_per_prim,
                         prims,
+                        layout.graft_whole,
                     ),
                 );
             }
@@ -1719,6 +1753,7 @@ impl TopLevelAccel {
             block_base,
             baked: Vec::new(),
             grafted,
+            merged: None,
         };
         accel.place_blocks();
         accel
@@ -1784,6 +1819,29 @@ impl TopLevelAccel {
         }
         self.baked = baked;
         self.place_blocks();
+        Ok(self)
+    }
+
+    /// Name object slot `slot` (below the baked placements') as a BVH over
+    /// several objects' triangles, primitive `p` of which is `origins[p]`
+    /// as (object, primitive): hits on it report that object and primitive.
+    /// Fails when the slot is empty, among the baked placements', or has
+    /// another number of primitives.
+    pub fn with_merged(mut self, merged: Option<MergedSlot>) -> Result<Self, crate::Error> {
+        if let Some(MergedSlot { slot, origins }) = &merged {
+            let prims = self
+                .objects
+                .get(*slot as usize)
+                .and_then(|o| o.as_deref())
+                .map(|o| o.mesh.len());
+            if *slot >= self.baked_base() || prims != Some(origins.len()) {
+                return Err(crate::Error::InvalidParameter(format!(
+                    "merged slot {slot} with {} origins: slot holds {prims:?} primitives",
+                    origins.len()
+                )));
+            }
+        }
+        self.merged = merged;
         Ok(self)
     }
 
@@ -1944,6 +2002,11 @@ impl TopLevelAccel {
                 (prim, normal, (e.object, e.instance))
             }
         };
+        // A hit on the merged BVH names the member and its own primitive.
+        let (object_id, prim_id) = match &self.merged {
+            Some(m) if object_id == m.slot => m.origins[prim_id as usize],
+            _ => (object_id, prim_id),
+        };
         Hit {
             t,
             u,
@@ -2087,7 +2150,8 @@ impl TopLevelAccel {
     /// How often each primitive of each placement is reachable by traversal:
     /// walks every entry ref (each the leaf of one slot of the wide top
     /// level, which [`TopLevelAccel::validate`] checks) into its object
-    /// subtree. Keys are (object, instance), also for baked placements.
+    /// subtree. Keys are (object, instance), also for baked placements and
+    /// for the members of a merged BVH (see [`TopLevelAccel::merged`]).
     pub fn reachable_counts(&self) -> std::collections::HashMap<(u32, u32), Vec<u32>> {
         let mut counts: std::collections::HashMap<(u32, u32), Vec<u32>> = Default::default();
         for r in &self.entry_refs {
@@ -2110,6 +2174,20 @@ impl TopLevelAccel {
                     stack.push(n.index as usize);
                     stack.push(n.index as usize + 1);
                 }
+            }
+        }
+        if let Some(MergedSlot { slot, origins }) = &self.merged
+            && let Some(c) = counts.remove(&(*slot, INVALID_ID))
+        {
+            let mut len = std::collections::HashMap::<u32, usize>::new();
+            for &(o, p) in origins.iter() {
+                let l = len.entry(o).or_default();
+                *l = (*l).max(p as usize + 1);
+            }
+            for (&(o, p), &n) in origins.iter().zip(&c) {
+                counts
+                    .entry((o, INVALID_ID))
+                    .or_insert_with(|| vec![0; len[&o]])[p as usize] += n;
             }
         }
         counts
@@ -2136,6 +2214,19 @@ impl TopLevelAccel {
         }
         if self.baked.len() > self.objects.len() {
             return Err("more baked placements than object slots".into());
+        }
+        if let Some(MergedSlot { slot, origins }) = &self.merged {
+            let prims = self
+                .objects
+                .get(*slot as usize)
+                .and_then(|o| o.as_deref())
+                .map(|o| o.mesh.len());
+            if *slot >= self.baked_base() || prims != Some(origins.len()) {
+                return Err(format!(
+                    "merged slot {slot}: {} origins for {prims:?} primitives",
+                    origins.len()
+                ));
+            }
         }
         if let Some(i) = self
             .refs
@@ -2335,5 +2426,9 @@ impl TopLevelAccel {
             + std::mem::size_of_val(self.block_entry.as_slice())
             + std::mem::size_of_val(self.block_placement.as_slice())
             + std::mem::size_of_val(self.block_normal_scale.as_slice())
+            + self
+                .merged
+                .as_ref()
+                .map_or(0, |m| std::mem::size_of_val(&*m.origins))
     }
 }
