@@ -757,6 +757,24 @@ fn merged_placed_objects_match_brute_force_in_every_mode() {
                 .sum::<usize>(),
             "{what}"
         );
+        // A merged slot that does not fit its BVH is refused.
+        let t = top(&scene);
+        let short: std::sync::Arc<[(u32, u32)]> = origins[1..].into();
+        for bad in [
+            rebraid::toplevel::MergedSlot {
+                slot,
+                origins: short,
+            },
+            rebraid::toplevel::MergedSlot {
+                slot: slot + 1 + t.baked.len() as u32,
+                origins: origins.clone(),
+            },
+        ] {
+            let mut broken = t.clone();
+            broken.merged = Some(bad.clone());
+            assert!(broken.validate().is_err(), "{what}: {bad:?}");
+            assert!(t.clone().with_merged(Some(bad)).is_err(), "{what}");
+        }
     }
     // Without instances the merged scene answers as the flat mode does,
     // bit for bit (up to exact ties).

@@ -310,9 +310,10 @@ pub struct TopLevelAccel {
     /// The top-level tree; leaves index into `refs`.
     pub tree: Bvh,
     pub refs: Vec<TopRef>,
-    /// Object BVHs by object id (`None` for removed or empty objects), then
-    /// in the last `baked.len()` slots the world-space BVHs of baked
-    /// placements (see [`TopLevelAccel::baked`]).
+    /// Object BVHs by object id (`None` for removed or empty objects, and
+    /// for the members of a merged BVH), then a merged BVH's (see
+    /// [`TopLevelAccel::merged`]), then in the last `baked.len()` slots the
+    /// world-space BVHs of baked placements (see [`TopLevelAccel::baked`]).
     pub objects: Vec<Option<Arc<ObjectBvh>>>,
     /// Instance transforms by instance id.
     pub instances: Vec<InstanceXf>,
@@ -1828,21 +1829,31 @@ impl TopLevelAccel {
     /// Fails when the slot is empty, among the baked placements', or has
     /// another number of primitives.
     pub fn with_merged(mut self, merged: Option<MergedSlot>) -> Result<Self, crate::Error> {
-        if let Some(MergedSlot { slot, origins }) = &merged {
-            let prims = self
-                .objects
-                .get(*slot as usize)
-                .and_then(|o| o.as_deref())
-                .map(|o| o.mesh.len());
-            if *slot >= self.baked_base() || prims != Some(origins.len()) {
-                return Err(crate::Error::InvalidParameter(format!(
-                    "merged slot {slot} with {} origins: slot holds {prims:?} primitives",
-                    origins.len()
-                )));
-            }
-        }
         self.merged = merged;
+        self.check_merged()
+            .map_err(crate::Error::InvalidParameter)?;
         Ok(self)
+    }
+
+    /// The merged slot, if any, is a live slot below the baked placements'
+    /// with one origin per primitive.
+    fn check_merged(&self) -> Result<(), String> {
+        let Some(MergedSlot { slot, origins }) = &self.merged else {
+            return Ok(());
+        };
+        let prims = self
+            .objects
+            .get(*slot as usize)
+            .and_then(|o| o.as_deref())
+            .map(|o| o.mesh.len());
+        if *slot >= self.baked_base() || prims != Some(origins.len()) {
+            return Err(format!(
+                "merged slot {slot}: {} origins for {prims:?} primitives (baked from {})",
+                origins.len(),
+                self.baked_base()
+            ));
+        }
+        Ok(())
     }
 
     /// Slot of the first baked placement's BVH in `objects`.
@@ -2215,19 +2226,7 @@ impl TopLevelAccel {
         if self.baked.len() > self.objects.len() {
             return Err("more baked placements than object slots".into());
         }
-        if let Some(MergedSlot { slot, origins }) = &self.merged {
-            let prims = self
-                .objects
-                .get(*slot as usize)
-                .and_then(|o| o.as_deref())
-                .map(|o| o.mesh.len());
-            if *slot >= self.baked_base() || prims != Some(origins.len()) {
-                return Err(format!(
-                    "merged slot {slot}: {} origins for {prims:?} primitives",
-                    origins.len()
-                ));
-            }
-        }
+        self.check_merged()?;
         if let Some(i) = self
             .refs
             .iter()
