@@ -118,8 +118,9 @@ struct SceneOpts {
     #[arg(long)]
     max_leaf: Option<u32>,
     /// Two-level modes: trace the objects placed directly (not instanced,
-    /// without instances) from one BVH over all their triangles, as a
-    /// static scene; a change to any of them rebuilds it.
+    /// without instances, not refitted) from one BVH over all their
+    /// triangles, as a static scene; an object's first edit takes it out
+    /// (one rebuild of the merged BVH), later edits rebuild only its own.
     #[arg(long)]
     merge_placed: bool,
     /// Re-braiding: keep the merged BVH (`--merge-placed`) behind entries

@@ -125,9 +125,12 @@ pub struct SceneParams {
     /// mesh or vertices, after a commit took it in) takes it out for good,
     /// as a baked instance's first move makes it an instance: that commit
     /// builds its own BVH and the merged one without it, later edits only
-    /// its own. Off by default: the builds cost more than the objects'
-    /// own (nexuiz, one thread: 0.87 of `embree-two-level`'s build time
-    /// against 1.27 without merging), for diffuse rays 17% faster there.
+    /// its own. Off by default: the one large build costs more wall time
+    /// than the objects' small ones (nexuiz, one thread: 0.75 of
+    /// `embree-two-level`'s build time with it, 1.07-1.27 without, in
+    /// session 30's runs of the figure), for diffuse rays 17-23% faster
+    /// there (wall time against a control of 1.02; 1.02 of `embree-flat`'s
+    /// instead of 0.78-0.85). `rebraid --merge-placed` turns it on.
     pub merge_placed: bool,
 }
 
