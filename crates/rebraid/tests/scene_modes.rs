@@ -776,9 +776,36 @@ fn merged_placed_objects_match_brute_force_in_every_mode() {
             assert!(t.clone().with_merged(Some(bad)).is_err(), "{what}");
         }
     }
+    // Grafted whole, the merged BVH is entered nowhere (the library case
+    // has no other object); behind entries, as any object, it is.
+    let (model, _) = &cases[2];
+    let world = model.world();
+    let rays = random_rays(&mut rng(906), &world, 500, SCENE_LO, SCENE_HI);
+    for graft_merged in [true, false] {
+        let mut p = merged(rebraid::bvh::Kernel::best());
+        p.mode = AccelMode::Rebraided;
+        p.rebraid.graft_merged = graft_merged;
+        let mut scene = model.to_scene(p);
+        scene.commit().unwrap();
+        let mut counters = rebraid::bvh::TraversalCounters::default();
+        for r in &rays {
+            scene.intersect_counted(r, &mut counters);
+        }
+        assert_eq!(
+            counters.entries_visited == 0,
+            graft_merged,
+            "graft_merged {graft_merged}: {counters:?}"
+        );
+        check_scene(
+            &scene,
+            &world,
+            &rays,
+            true,
+            &format!("graft_merged {graft_merged}"),
+        );
+    }
     // Without instances the merged scene answers as the flat mode does,
     // bit for bit (up to exact ties).
-    let (model, _) = &cases[2];
     let world = model.world();
     let rays = random_rays(&mut rng(905), &world, 1500, SCENE_LO, SCENE_HI);
     let mut scene = model.to_scene(params(AccelMode::Flat));
