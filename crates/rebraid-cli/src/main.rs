@@ -123,11 +123,11 @@ struct SceneOpts {
     /// (one rebuild of the merged BVH), later edits rebuild only its own.
     #[arg(long)]
     merge_placed: bool,
-    /// Re-braiding: keep the merged BVH (`--merge-placed`) behind entries
-    /// like any object, within the graft size and budget (by default the
-    /// top level takes its whole tree).
+    /// Re-braiding: graft a merged BVH (`--merge-placed`) of at most this
+    /// many triangles whole into the top level (0: never; larger ones stay
+    /// behind entries like any object).
     #[arg(long)]
-    no_graft_merged: bool,
+    graft_merged_max_prims: Option<u32>,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -200,7 +200,9 @@ impl SceneOpts {
             p.object_build.max_leaf_size = m;
         }
         p.merge_placed = self.merge_placed;
-        r.graft_merged = !self.no_graft_merged;
+        if let Some(g) = self.graft_merged_max_prims {
+            r.graft_merged_max_prims = g;
+        }
         p.object_build.check()?;
         r.check()?;
         Ok(p)
@@ -228,7 +230,6 @@ impl SceneOpts {
                 self.no_inline_instanced_leaves,
             ),
             ("--merge-placed", self.merge_placed),
-            ("--no-graft-merged", self.no_graft_merged),
         ];
         v.extend(flags.iter().filter(|f| f.1).map(|f| f.0.to_string()));
         let values = [
@@ -245,6 +246,10 @@ impl SceneOpts {
                 self.graft_max_prims.map(|x| x.to_string()),
             ),
             ("graft-budget", self.graft_budget.map(|x| x.to_string())),
+            (
+                "graft-merged-max-prims",
+                self.graft_merged_max_prims.map(|x| x.to_string()),
+            ),
             (
                 "graft-share-per-prim",
                 self.graft_share_per_prim.map(|x| x.to_string()),

@@ -784,7 +784,7 @@ fn merged_placed_objects_match_brute_force_in_every_mode() {
     for graft_merged in [true, false] {
         let mut p = merged(rebraid::bvh::Kernel::best());
         p.mode = AccelMode::Rebraided;
-        p.rebraid.graft_merged = graft_merged;
+        p.rebraid.graft_merged_max_prims = if graft_merged { u32::MAX } else { 0 };
         let mut scene = model.to_scene(p);
         scene.commit().unwrap();
         let mut counters = rebraid::bvh::TraversalCounters::default();

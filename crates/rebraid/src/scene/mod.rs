@@ -1061,6 +1061,16 @@ impl Scene {
             self.top_initial = refs;
         }
         let (tree, top_refs, build_stats) = built?;
+        // The merged BVH grafted whole up to its size limit.
+        let graft_whole = merged
+            .as_ref()
+            .filter(|m| {
+                let prims = objects[m.slot as usize]
+                    .as_ref()
+                    .map_or(0, |o| o.mesh.len());
+                params.open && prims <= params.graft_merged_max_prims as usize
+            })
+            .map(|m| m.slot);
         let accel = TopLevelAccel::new(
             tree,
             top_refs,
@@ -1079,10 +1089,7 @@ impl Scene {
                 },
                 graft_budget: params.graft_budget,
                 graft_share_per_prim: params.graft_share_per_prim,
-                graft_whole: merged
-                    .as_ref()
-                    .filter(|_| params.open && params.graft_merged)
-                    .map(|m| m.slot),
+                graft_whole,
             },
             block_buffer,
         )

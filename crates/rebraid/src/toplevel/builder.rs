@@ -309,14 +309,17 @@ pub struct RebraidParams {
     /// may still pay: `--graft-max-prims 512 --graft-share-per-prim 1e-5`.
     pub graft_share_per_prim: f32,
     /// Graft a scene's merged BVH (see
-    /// [`crate::scene::SceneParams::merge_placed`]) whole into the top
-    /// level, whatever `graft_max_prims` and `graft_budget` say: it stands
-    /// for the many objects re-braiding would have opened, and its entries
-    /// cost what theirs did (nexuiz, every object merged: wall time 1.05
-    /// over the merged BVH behind entries, docs/performance.md, session
-    /// 30). The price is a copy of its nodes and blocks (nexuiz 15.1 ->
-    /// 23.7 MB). On by default.
-    pub graft_merged: bool,
+    /// [`crate::scene::SceneParams::merge_placed`]) of at most this many
+    /// triangles whole into the top level, whatever `graft_max_prims` and
+    /// `graft_budget` say (0: never): it stands for the many objects
+    /// re-braiding would have opened, and its entries cost what theirs did.
+    /// The price is a copy of its nodes and blocks, which pays on nexuiz
+    /// (125,101 triangles merged: wall time 1.05 over the merged BVH behind
+    /// entries, for 4-7 ms of build and 15.1 -> 23.7 MB) and not on the
+    /// library at scale 1 (1M triangles: no measurable difference, for 74
+    /// ms of build and 150 -> 199 MB); docs/performance.md, session 30.
+    /// Default 2^18.
+    pub graft_merged_max_prims: u32,
     /// Lists longer than this are opened, binned and partitioned with
     /// data-parallel loops, and their halves built as parallel tasks.
     pub parallel_threshold: usize,
@@ -356,7 +359,7 @@ impl Default for RebraidParams {
             graft_max_prims: 64,
             graft_budget: 0.1,
             graft_share_per_prim: 0.0,
-            graft_merged: true,
+            graft_merged_max_prims: 1 << 18,
             parallel_threshold: 1024,
             bake_single_instances: true,
         }
