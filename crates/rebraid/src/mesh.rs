@@ -34,6 +34,33 @@ impl TriangleMesh {
         Self::new(positions, indices)
     }
 
+    /// One mesh of the triangles of `parts` in order, each part's vertices
+    /// moved by its transform if it has one: part `k`'s triangle `i` is
+    /// triangle `i` plus the triangles of the parts before it. Fails when
+    /// the vertices or triangles are more than `u32` indices name. The
+    /// parts are taken as checked (not validated again); a transform that
+    /// takes a vertex to infinity is caught by the BVH build.
+    pub fn concat(parts: &[(&TriangleMesh, Option<&glam::Affine3A>)]) -> Result<Self, Error> {
+        let vertices: usize = parts.iter().map(|(m, _)| m.positions.len()).sum();
+        let triangles: usize = parts.iter().map(|(m, _)| m.len()).sum();
+        if vertices > u32::MAX as usize || triangles >= INVALID_ID as usize {
+            return Err(Error::TooManyPrimitives(triangles));
+        }
+        let mut positions = Vec::with_capacity(vertices);
+        let mut indices = Vec::with_capacity(triangles);
+        for &(m, xf) in parts {
+            let base = positions.len() as u32;
+            match xf {
+                Some(t) => {
+                    positions.par_extend(m.positions.par_iter().map(|&v| t.transform_point3(v)))
+                }
+                None => positions.extend_from_slice(&m.positions),
+            }
+            indices.extend(m.indices.iter().map(|t| t.map(|i| i + base)));
+        }
+        Ok(Self { positions, indices })
+    }
+
     /// Every vertex finite, every index in range. Degenerate triangles are fine.
     pub fn validate(&self) -> Result<(), Error> {
         if let Some(i) = self.positions.iter().position(|p| !p.is_finite()) {
@@ -388,6 +415,42 @@ pub fn brute_force_occluded(mesh: &TriangleMesh, ray: &Ray) -> bool {
 mod tests {
     use super::*;
     use glam::{Affine3A, Quat};
+
+    /// `concat`: each part's triangles in order, moved by its transform,
+    /// bit for bit `transform_point3`'s vertices.
+    #[test]
+    fn concat_keeps_each_parts_triangles_in_order() {
+        let a = TriangleMesh::from_triangles(&[
+            [Vec3::ZERO, Vec3::X, Vec3::Y],
+            [Vec3::Z, Vec3::X, Vec3::ONE],
+        ])
+        .unwrap();
+        let b = TriangleMesh::new(
+            vec![
+                Vec3::new(2.0, 0.0, 0.0),
+                Vec3::new(3.0, 1.0, 0.5),
+                Vec3::new(2.0, 2.0, 1.0),
+            ],
+            vec![[0, 1, 2], [2, 1, 0]],
+        )
+        .unwrap();
+        let xf = Affine3A::from_scale_rotation_translation(
+            Vec3::new(1.5, 0.5, 2.0),
+            Quat::from_rotation_y(0.7),
+            Vec3::new(-3.0, 4.0, 0.25),
+        );
+        let m = TriangleMesh::concat(&[(&a, None), (&b, Some(&xf)), (&a, Some(&xf))]).unwrap();
+        m.validate().unwrap();
+        let moved = |t: [Vec3; 3]| t.map(|v| xf.transform_point3(v));
+        let want: Vec<[Vec3; 3]> = (0..a.len())
+            .map(|i| a.triangle(i))
+            .chain((0..b.len()).map(|i| moved(b.triangle(i))))
+            .chain((0..a.len()).map(|i| moved(a.triangle(i))))
+            .collect();
+        let got: Vec<[Vec3; 3]> = (0..m.len()).map(|i| m.triangle(i)).collect();
+        assert_eq!(got, want);
+        assert_eq!(TriangleMesh::concat(&[]).unwrap(), TriangleMesh::default());
+    }
 
     /// A baked placement's BVH is the moved mesh's, bit for bit, and a
     /// transform that overflows a vertex is an error.

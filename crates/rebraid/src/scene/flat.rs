@@ -3,9 +3,6 @@
 //! The quality reference for the two-level modes, and their slow-build,
 //! no-instancing foil.
 
-use glam::Vec3;
-use rayon::prelude::*;
-
 use crate::bvh::triangle4::block_hit_record;
 use crate::bvh::{
     BuildParams, Kernel, TraversalCounters, WideTriangleBvh, intersect_many, occluded_many,
@@ -58,26 +55,19 @@ impl FlatAccel {
     }
 
     pub fn build(parts: &[FlatPart], params: &BuildParams, kernel: Kernel) -> Result<Self, Error> {
-        let total_v: usize = parts.iter().map(|p| p.mesh.positions.len()).sum();
-        let total_t: usize = parts.iter().map(|p| p.mesh.len()).sum();
-        let mut positions: Vec<Vec3> = Vec::with_capacity(total_v);
-        let mut indices: Vec<[u32; 3]> = Vec::with_capacity(total_t);
-        let mut origins = Vec::with_capacity(total_t);
+        let meshes: Vec<_> = parts
+            .iter()
+            .map(|p| (p.mesh, p.transform.as_ref()))
+            .collect();
+        let mesh = TriangleMesh::concat(&meshes)?;
+        let mut origins = Vec::with_capacity(mesh.len());
         for p in parts {
-            let base = positions.len() as u32;
-            match p.transform {
-                Some(t) => positions
-                    .par_extend(p.mesh.positions.par_iter().map(|&v| t.transform_point3(v))),
-                None => positions.extend_from_slice(&p.mesh.positions),
-            }
-            indices.extend(p.mesh.indices.iter().map(|t| t.map(|i| i + base)));
             origins.extend((0..p.mesh.len() as u32).map(|prim| PrimOrigin {
                 object: p.object,
                 instance: p.instance,
                 prim,
             }));
         }
-        let mesh = TriangleMesh { positions, indices };
         let bvh = MeshBvh::build(&mesh, params)?;
         let wide = WideTriangleBvh::from_mesh(&bvh).ok();
         Ok(Self {

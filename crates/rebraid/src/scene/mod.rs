@@ -195,32 +195,18 @@ impl Merged {
         members: Vec<ObjectId>,
         params: &BuildParams,
     ) -> Result<Self, Error> {
-        let mesh_of = |id: ObjectId| {
-            &objects[id as usize]
-                .as_ref()
-                .expect("members are live")
-                .mesh
-        };
-        let (mut vertices, mut triangles) = (0usize, 0usize);
-        for &id in &members {
-            vertices += mesh_of(id).positions.len();
-            triangles += mesh_of(id).len();
-        }
-        if vertices > u32::MAX as usize || triangles >= INVALID_ID as usize {
-            return Err(Error::TooManyPrimitives(triangles));
-        }
-        let mut positions = Vec::with_capacity(vertices);
-        let mut indices = Vec::with_capacity(triangles);
-        let mut origins = Vec::with_capacity(triangles);
-        for &id in &members {
-            let m = mesh_of(id);
-            let base = positions.len() as u32;
-            positions.extend_from_slice(&m.positions);
-            indices.extend(m.indices.iter().map(|t| t.map(|v| v + base)));
+        let meshes: Vec<_> = members
+            .iter()
+            .map(|&id| {
+                let o = objects[id as usize].as_ref().expect("members are live");
+                (&o.mesh, None)
+            })
+            .collect();
+        let mesh = TriangleMesh::concat(&meshes)?;
+        let mut origins = Vec::with_capacity(mesh.len());
+        for (&id, (m, _)) in members.iter().zip(&meshes) {
             origins.extend((0..m.len() as u32).map(|p| (id, p)));
         }
-        // Every member's mesh was checked when it was set.
-        let mesh = TriangleMesh { positions, indices };
         let bvh = MeshBvh::build(&mesh, params)?;
         Ok(Self {
             members,
