@@ -776,33 +776,72 @@ fn merged_placed_objects_match_brute_force_in_every_mode() {
             assert!(t.clone().with_merged(Some(bad)).is_err(), "{what}");
         }
     }
-    // Grafted whole, the merged BVH is entered nowhere (the library case
-    // has no other object); behind entries, as any object, it is.
+    // The library case has no other object: in both two-level modes its
+    // top level is the merged BVH alone, walked directly (no entry, no
+    // graft), whatever the graft limit.
     let (model, _) = &cases[2];
     let world = model.world();
     let rays = random_rays(&mut rng(906), &world, 500, SCENE_LO, SCENE_HI);
-    for graft_merged in [true, false] {
+    for (mode, graft_merged) in [
+        (AccelMode::Rebraided, true),
+        (AccelMode::Rebraided, false),
+        (AccelMode::TwoLevel, false),
+    ] {
+        let what = format!("alone {mode:?} graft_merged {graft_merged}");
         let mut p = merged(rebraid::bvh::Kernel::best());
-        p.mode = AccelMode::Rebraided;
+        p.mode = mode;
         p.rebraid.graft_merged_max_prims = if graft_merged { u32::MAX } else { 0 };
         let mut scene = model.to_scene(p);
         scene.commit().unwrap();
+        let t = top(&scene);
+        let slot = t.merged.as_ref().expect("merged").slot;
+        assert_eq!(t.direct, Some(slot), "{what}");
+        assert!(t.grafted.is_empty() && t.blocks.is_empty(), "{what}");
         let mut counters = rebraid::bvh::TraversalCounters::default();
         for r in &rays {
             scene.intersect_counted(r, &mut counters);
         }
-        assert_eq!(
-            counters.entries_visited == 0,
-            graft_merged,
-            "graft_merged {graft_merged}: {counters:?}"
-        );
-        check_scene(
-            &scene,
-            &world,
-            &rays,
-            true,
-            &format!("graft_merged {graft_merged}"),
-        );
+        assert_eq!(counters.entries_visited, 0, "{what}: {counters:?}");
+        assert!(counters.inner_visited > 0, "{what}: {counters:?}");
+        check_scene(&scene, &world, &rays, true, &what);
+    }
+    // With an instanced object beside it the top level is walked: grafted
+    // whole, the merged BVH is entered by no top-level leaf; in the plain
+    // two-level mode (no grafts), as any object, it is.
+    let mut beside = model.clone();
+    let proto = beside.objects.len() as u32;
+    let small = beside.objects[&0].0.clone();
+    beside.objects.insert(proto, (small, false));
+    beside.instances.insert(
+        0,
+        (
+            proto,
+            Affine3A::from_translation(Vec3::new(0.5, 0.25, -0.5)),
+        ),
+    );
+    let world = beside.world();
+    let rays = random_rays(&mut rng(907), &world, 500, SCENE_LO, SCENE_HI);
+    for (mode, graft_merged) in [
+        (AccelMode::Rebraided, true),
+        (AccelMode::Rebraided, false),
+        (AccelMode::TwoLevel, true),
+    ] {
+        let what = format!("beside an instance, {mode:?} graft_merged {graft_merged}");
+        let mut p = merged(rebraid::bvh::Kernel::best());
+        p.mode = mode;
+        p.rebraid.graft_merged_max_prims = if graft_merged { u32::MAX } else { 0 };
+        let mut scene = beside.to_scene(p);
+        scene.commit().unwrap();
+        let t = top(&scene);
+        let slot = t.merged.as_ref().expect("merged").slot;
+        assert_eq!(t.direct, None, "{what}");
+        let entered = entered_slots(t).contains(&slot);
+        match (mode, graft_merged) {
+            (AccelMode::Rebraided, true) => assert!(!entered, "{what}"),
+            (AccelMode::TwoLevel, _) => assert!(entered, "{what}"),
+            _ => {}
+        }
+        check_scene(&scene, &world, &rays, true, &what);
     }
     // Without instances the merged scene answers as the flat mode does,
     // bit for bit (up to exact ties).
@@ -829,6 +868,77 @@ fn merged_placed_objects_match_brute_force_in_every_mode() {
                     .any(|h| (h.object, h.prim) == (b.object_id, b.prim_id) && h.t == a.t),
                 "ray {i}: {a:?} vs flat {b:?} is no tie"
             );
+        }
+    }
+}
+
+/// The object slots the leaves of a top level's wide tree enter (entries,
+/// not the blocks copied into it).
+fn entered_slots(t: &rebraid::toplevel::TopLevelAccel) -> std::collections::BTreeSet<u32> {
+    use rebraid::bvh::wide::{WIDE_EMPTY, decode_leaf, is_leaf_ref};
+    let w = t.wide.as_ref().expect("a wide top level");
+    w.nodes
+        .iter()
+        .flat_map(|n| n.child)
+        .filter(|&c| c != WIDE_EMPTY && is_leaf_ref(c))
+        .flat_map(|c| {
+            let (first, count) = decode_leaf(c);
+            (first..first + count)
+                .filter(|&i| i < t.block_base)
+                .map(|i| t.entries[i as usize].object)
+        })
+        .collect()
+}
+
+/// A top level whose refs all name one object slot placed directly is
+/// walked as that slot's BVH alone (`TopLevelAccel::direct`): one object
+/// placed (beside a prototype nothing places), and one prototype placed by
+/// a single instance (baked into world space, reported as the instance).
+/// Every mode and kernel against the brute force, random and camera rays;
+/// no entries counted.
+#[test]
+fn a_scene_of_one_bvh_is_walked_directly() {
+    let mut r = rng(950);
+    let mut one = Model::default();
+    one.objects
+        .insert(0, (soup(&mut r, 1500, SCENE_LO, SCENE_HI, 1.5), true));
+    one.objects
+        .insert(1, (soup(&mut r, 50, SCENE_LO, SCENE_HI, 1.5), false));
+    let mut baked = Model::default();
+    baked
+        .objects
+        .insert(0, (soup(&mut r, 1500, SCENE_LO, SCENE_HI, 1.5), false));
+    let xf = Affine3A::from_rotation_translation(
+        rebraid::glam::Quat::from_rotation_y(0.3),
+        Vec3::new(0.5, -0.25, 0.75),
+    );
+    baked.instances.insert(0, (0, xf));
+    for (model, what, slot, report) in [
+        (&one, "one object", 0, (0, INVALID_ID)),
+        (&baked, "one instance", 1, (0, 0)),
+    ] {
+        let world = model.world();
+        let mut rays = random_rays(&mut rng(951), &world, 1200, SCENE_LO, SCENE_HI);
+        rays.extend(camera_rays(Vec3::new(9.3, 30.0, 11.1), 8.0));
+        all_modes_vs_brute(model, &rays, what);
+        for mode in [AccelMode::TwoLevel, AccelMode::Rebraided] {
+            let what = format!("{what} {mode:?}");
+            let mut scene = model.to_scene(params(mode));
+            scene.commit().unwrap();
+            let t = top(&scene);
+            assert_eq!(t.direct, Some(slot), "{what}");
+            assert_eq!(t.placement_of_slot(slot), report, "{what}");
+            let mut counters = rebraid::bvh::TraversalCounters::default();
+            let mut hits = 0;
+            for ray in &rays {
+                if let Some(h) = scene.intersect_counted(ray, &mut counters) {
+                    assert_eq!((h.object_id, h.instance_id), report, "{what}");
+                    hits += 1;
+                }
+            }
+            assert!(hits * 4 >= rays.len(), "{what}: {hits} hits");
+            assert_eq!(counters.entries_visited, 0, "{what}: {counters:?}");
+            assert!(counters.inner_visited > 0, "{what}: {counters:?}");
         }
     }
 }

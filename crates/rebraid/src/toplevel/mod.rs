@@ -16,12 +16,14 @@ use glam::Affine3A;
 use rayon::prelude::*;
 
 use crate::bvh::occlusion_order::{OcclusionStats, order_for_occlusion_except};
-use crate::bvh::triangle4::{Triangle4, block_hit_record, intersect_blocks, leaf_occlusion};
+use crate::bvh::triangle4::{
+    LeafHit, Triangle4, block_hit_record, intersect_blocks, leaf_occlusion,
+};
 use crate::bvh::wide::{WIDE_EMPTY, WIDE_MAX_PRIMITIVES, decode_leaf, encode_leaf, is_leaf_ref};
 use crate::bvh::{
     BoxRay, BoxTester, Bvh, BvhNode, Kernel, MAX_DEPTH, SahCosts, TRAVERSAL_STACK, TesterFactory,
-    TraversalCounters, WideBvh, WideNode, WideQuery, WideTriangleBvh, subtree_with, traverse_with,
-    with_kernel,
+    TraversalCounters, WideBvh, WideNode, WideQuery, WideTriangleBvh, intersect_many,
+    occluded_many, query_subtree, subtree_with, traverse_with, with_kernel,
 };
 use crate::transform::{transform_box, transform_normal};
 use crate::triangle::WatertightRay;
@@ -363,6 +365,19 @@ pub struct TopLevelAccel {
     /// placed directly, and per primitive of it the (object, primitive) a
     /// hit on it reports. The slot is below [`TopLevelAccel::baked_base`].
     pub merged: Option<MergedSlot>,
+    /// The object slot every ref of the top level names, placed directly
+    /// (no instance), when there is one and it has a wide layout: the
+    /// whole scene is that one BVH, which traversal then walks as the flat
+    /// mode walks its tree ([`crate::bvh::query_subtree`],
+    /// [`crate::bvh::intersect_many`]), without the top level. A scene of
+    /// one object, or one whose objects are all merged (see
+    /// [`crate::scene::SceneParams::merge_placed`]), is such a scene. The
+    /// top-level walk over the same tree costs 9% more instructions per
+    /// diffuse ray, almost all in its leaves (nexuiz as one object,
+    /// 1,363.6 against 1,253; docs/performance.md, session 30); its
+    /// grafts and leaf copies are not made (the merged BVH's whole graft
+    /// was 26M of nexuiz's 270M commit instructions).
+    pub direct: Option<u32>,
 }
 
 /// A BVH over several objects placed directly, in one object slot of a top
@@ -402,6 +417,25 @@ pub struct TopLevelLayout {
     /// (docs/performance.md, session 30), for a copy of its nodes and
     /// blocks (15.1 -> 23.7 MB).
     pub graft_whole: Option<u32>,
+}
+
+/// The object slot that every ref names, placed directly, when it has a
+/// wide layout (see [`TopLevelAccel::direct`]). The refs of a top level
+/// cover its initial refs' primitives, so refs of one object placed
+/// directly (its root, or nodes opened from it) mean the scene is that
+/// object.
+fn direct_slot(refs: &[TopRef], objects: &[Option<Arc<ObjectBvh>>]) -> Option<u32> {
+    let first = refs.first()?;
+    let one = refs
+        .iter()
+        .all(|r| r.object == first.object && r.instance == INVALID_ID);
+    let wide = objects
+        .get(first.object as usize)?
+        .as_deref()?
+        .wide
+        .as_ref()
+        .is_some_and(|w| !w.wide.nodes.is_empty());
+    (one && wide).then_some(first.object)
 }
 
 /// Copy the triangle blocks of the object leaves that top-level leaves
@@ -1695,14 +1729,18 @@ impl TopLevelAccel {
                 node: r.node,
             })
             .collect();
+        let direct = direct_slot(&refs, &objects);
         let mut grafted = Vec::new();
         if let Some(w) = &mut wide {
-            if layout.pull_entry_nodes {
+            // A direct top level is never walked: no pulls, grafts or
+            // copies to make for it.
+            if layout.pull_entry_nodes && direct.is_none() {
                 pull_into_top_level(w, &mut entry_refs, &mut entries, &objects, &instances);
             }
             let first_grafted = w.nodes.len();
-            if (layout.graft_max_prims > 0 && layout.graft_budget > 0.0)
-                || layout.graft_whole.is_some()
+            if direct.is_none()
+                && ((layout.graft_max_prims > 0 && layout.graft_budget > 0.0)
+                    || layout.graft_whole.is_some())
             {
                 // Primitives of the distinct objects, each counted once.
                 let prims: u64 = objects.iter().flatten().map(|o| o.mesh.len() as u64).sum();
@@ -1727,7 +1765,7 @@ impl TopLevelAccel {
         }
         let block_base = entries.len() as u32;
         let (blocks, block_entry) = match &mut wide {
-            Some(w) if layout.inline_leaf_blocks => inline_leaf_blocks(
+            Some(w) if layout.inline_leaf_blocks && direct.is_none() => inline_leaf_blocks(
                 w,
                 &entries,
                 &objects,
@@ -1755,6 +1793,7 @@ impl TopLevelAccel {
             baked: Vec::new(),
             grafted,
             merged: None,
+            direct,
         };
         accel.place_blocks();
         accel
@@ -1907,6 +1946,18 @@ impl TopLevelAccel {
         if !ray.is_valid() {
             return None;
         }
+        if let Some((slot, w)) = self.direct_bvh() {
+            let h = query_subtree::<false>(
+                &w.wide.nodes,
+                &w.blocks,
+                self.kernel,
+                0,
+                ray,
+                ray.t_max,
+                counters,
+            )?;
+            return Some(self.direct_hit(slot, w, h));
+        }
         let mut walk = RayWalk::<false> {
             accel: self,
             ray,
@@ -1929,6 +1980,10 @@ impl TopLevelAccel {
     /// incoherent rays go alone.
     pub fn intersect_many(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
         assert_eq!(rays.len(), out.len(), "one output per ray");
+        if let Some((slot, w)) = self.direct_bvh() {
+            let answer = |h: Option<LeafHit>| h.map(|h| self.direct_hit(slot, w, h));
+            return intersect_many(&w.wide.nodes, &w.blocks, self.kernel, rays, out, answer);
+        }
         let answer = |a: &TopLevelAccel, h: Option<RefHit>| h.map(|h| a.make_hit(h));
         #[cfg(target_arch = "x86_64")]
         if self.kernel == Kernel::Avx2
@@ -1960,6 +2015,9 @@ impl TopLevelAccel {
     /// its packet remain; the answers are the single-ray kernel's.
     pub fn occluded_many(&self, rays: &[Ray], out: &mut [bool]) {
         assert_eq!(rays.len(), out.len(), "one output per ray");
+        if let Some((_, w)) = self.direct_bvh() {
+            return occluded_many(&w.wide.nodes, &w.blocks, self.kernel, rays, out);
+        }
         #[cfg(target_arch = "x86_64")]
         if self.kernel == Kernel::Avx2
             && let Some(wide) = &self.wide
@@ -2013,6 +2071,36 @@ impl TopLevelAccel {
                 (prim, normal, (e.object, e.instance))
             }
         };
+        self.finish_hit(t, u, v, prim_id, normal, (object_id, instance_id))
+    }
+
+    /// The wide BVH of [`TopLevelAccel::direct`]'s slot, when set.
+    #[inline(always)]
+    fn direct_bvh(&self) -> Option<(u32, &WideTriangleBvh)> {
+        let slot = self.direct?;
+        let w = self.objects.get(slot as usize)?.as_deref()?.wide.as_ref()?;
+        Some((slot, w))
+    }
+
+    /// The hit a walk of [`TopLevelAccel::direct`]'s BVH reports.
+    #[inline(always)]
+    fn direct_hit(&self, slot: u32, w: &WideTriangleBvh, (t, u, v, k): LeafHit) -> Hit {
+        let (prim_id, normal) = block_hit_record(&w.blocks, k);
+        self.finish_hit(t, u, v, prim_id, normal, self.placement_of_slot(slot))
+    }
+
+    /// A hit on object slot `object_id`'s primitive `prim_id` (or a copied
+    /// block's), as the scene reports it.
+    #[inline(always)]
+    fn finish_hit(
+        &self,
+        t: f32,
+        u: f32,
+        v: f32,
+        prim_id: u32,
+        normal: glam::Vec3,
+        (object_id, instance_id): (u32, u32),
+    ) -> Hit {
         // A hit on the merged BVH names the member and its own primitive.
         let (object_id, prim_id) = match &self.merged {
             Some(m) if object_id == m.slot => m.origins[prim_id as usize],
@@ -2038,6 +2126,18 @@ impl TopLevelAccel {
     pub fn occluded_counted(&self, ray: &Ray, counters: &mut TraversalCounters) -> bool {
         if !ray.is_valid() {
             return false;
+        }
+        if let Some((_, w)) = self.direct_bvh() {
+            return query_subtree::<true>(
+                &w.wide.nodes,
+                &w.blocks,
+                self.kernel,
+                0,
+                ray,
+                ray.t_max,
+                counters,
+            )
+            .is_some();
         }
         let mut walk = RayWalk::<true> {
             accel: self,
@@ -2227,6 +2327,13 @@ impl TopLevelAccel {
             return Err("more baked placements than object slots".into());
         }
         self.check_merged()?;
+        if self.direct != direct_slot(&self.refs, &self.objects) {
+            return Err(format!(
+                "direct slot {:?}, but the refs name {:?}",
+                self.direct,
+                direct_slot(&self.refs, &self.objects)
+            ));
+        }
         if let Some(i) = self
             .refs
             .iter()
