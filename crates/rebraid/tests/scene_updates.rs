@@ -840,3 +840,60 @@ fn merged_objects_are_rebuilt_exactly_when_members_change() {
         check_top(top(&scene), &model, "option off");
     }
 }
+
+/// A scene whose top level is one object placed directly is walked as that
+/// object's BVH (`TopLevelAccel::direct`) through its updates: refitted in
+/// place, no longer alone while an instance or a second object is added,
+/// alone again once they are removed; answers against the brute force at
+/// every commit, in both two-level modes.
+#[test]
+fn a_scene_of_one_object_is_walked_directly_through_its_updates() {
+    for mode in [AccelMode::TwoLevel, AccelMode::Rebraided] {
+        let mut r = rng(980);
+        let mut scene = Scene::with_params(params(mode));
+        let mut model = Model::default();
+        let obj = model.add_object(&mut scene, soup(&mut r, 900, SCENE_LO, SCENE_HI, 1.2), true);
+        let proto = model.add_object(&mut scene, soup(&mut r, 60, SCENE_LO, SCENE_HI, 1.2), false);
+        let check = |scene: &Scene, model: &Model, direct: Option<u32>, seed: u64, what: &str| {
+            let what = format!("{mode:?} {what}");
+            let t = match scene.accel() {
+                Accel::TopLevel(t) => t,
+                _ => panic!("{what}: not a top level"),
+            };
+            assert_eq!(t.direct, direct, "{what}");
+            check_top(t, model, &what);
+            let world = model.world();
+            let rays = random_rays(&mut rng(seed), &world, 300, SCENE_LO, SCENE_HI);
+            let exact = model.instances.is_empty();
+            let tally = check_scene(scene, &world, &rays, exact, &what);
+            assert!(tally.hits * 4 >= rays.len(), "{what}: {tally:?}");
+        };
+        scene.commit().unwrap();
+        check(&scene, &model, Some(obj), 1, "alone");
+
+        scene.set_update_policy(obj, UpdatePolicy::Refit).unwrap();
+        let v = jitter(&mut r, &model.objects[&obj].0);
+        scene.set_vertices(obj, &v).unwrap();
+        model.objects.get_mut(&obj).unwrap().0.positions = v;
+        let rep = scene.commit().unwrap();
+        assert_eq!(rep.objects_refitted, [obj], "{mode:?}");
+        check(&scene, &model, Some(obj), 2, "refitted");
+
+        let xf = Affine3A::from_translation(Vec3::new(1.0, 2.0, 3.0));
+        let inst = model.add_instance(&mut scene, proto, xf);
+        scene.commit().unwrap();
+        check(&scene, &model, None, 3, "beside an instance");
+        scene.remove_instance(inst).unwrap();
+        model.instances.remove(&inst);
+        scene.commit().unwrap();
+        check(&scene, &model, Some(obj), 4, "alone again");
+
+        let other = model.add_object(&mut scene, soup(&mut r, 200, SCENE_LO, SCENE_HI, 1.2), true);
+        scene.commit().unwrap();
+        check(&scene, &model, None, 5, "beside an object");
+        scene.remove_object(other).unwrap();
+        model.objects.remove(&other);
+        scene.commit().unwrap();
+        check(&scene, &model, Some(obj), 6, "alone at last");
+    }
+}
