@@ -921,6 +921,11 @@ fn a_scene_of_one_bvh_is_walked_directly() {
         let mut rays = random_rays(&mut rng(951), &world, 1200, SCENE_LO, SCENE_HI);
         rays.extend(camera_rays(Vec3::new(9.3, 30.0, 11.1), 8.0));
         all_modes_vs_brute(model, &rays, what);
+        let mut flat = model.to_scene(params(AccelMode::Flat));
+        flat.commit().unwrap();
+        let Accel::Flat(f) = flat.accel() else {
+            panic!("{what}: not flat")
+        };
         for mode in [AccelMode::TwoLevel, AccelMode::Rebraided] {
             let what = format!("{what} {mode:?}");
             let mut scene = model.to_scene(params(mode));
@@ -928,6 +933,10 @@ fn a_scene_of_one_bvh_is_walked_directly() {
             let t = top(&scene);
             assert_eq!(t.direct, Some(slot), "{what}");
             assert_eq!(t.placement_of_slot(slot), report, "{what}");
+            // The statistic counts the walk: the slot's tree, as the flat
+            // mode's (the same tree here), without the unwalked top level.
+            assert!(f.wide_sah_cost() > 0.0, "{what}");
+            assert_eq!(t.wide_sah_cost(), f.wide_sah_cost(), "{what}");
             let mut counters = rebraid::bvh::TraversalCounters::default();
             let mut hits = 0;
             for ray in &rays {

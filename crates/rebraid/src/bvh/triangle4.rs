@@ -585,6 +585,20 @@ pub struct WideTriangleBvh {
 }
 
 impl WideTriangleBvh {
+    /// Embree's SAH statistic of the tree as a ray walks it alone (see
+    /// [`crate::bvh::wide::wide_sah_sum`]); 0 for an empty tree or a root
+    /// box without area.
+    pub fn wide_sah_cost(&self) -> f64 {
+        use crate::bvh::wide::{wide_root_area, wide_sah_sum};
+        let root_area = wide_root_area(&self.wide);
+        if self.wide.nodes.is_empty() || root_area <= 0.0 {
+            return 0.0;
+        }
+        let area = |b: &crate::Aabb| b.half_area() as f64;
+        let mut leaf = |c: u32, a: f64| a * decode_leaf(c).1 as f64;
+        wide_sah_sum(&self.wide, 0, root_area, &area, &mut leaf) / root_area
+    }
+
     /// Collapse the mesh's binary tree and pack its leaves; fails when a
     /// binary leaf is too large for the wide layout.
     pub fn from_mesh(mesh: &crate::MeshBvh) -> Result<Self, crate::Error> {

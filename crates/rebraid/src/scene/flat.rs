@@ -43,15 +43,7 @@ impl FlatAccel {
     /// Embree's SAH statistic of the wide layout (see
     /// [`crate::bvh::wide::wide_sah_sum`]); 0 without one.
     pub fn wide_sah_cost(&self) -> f64 {
-        use crate::bvh::wide::{decode_leaf, wide_root_area, wide_sah_sum};
-        let Some(w) = &self.wide else { return 0.0 };
-        let root_area = wide_root_area(&w.wide);
-        if root_area <= 0.0 {
-            return 0.0;
-        }
-        let area = |b: &crate::Aabb| b.half_area() as f64;
-        let mut leaf = |c: u32, a: f64| a * decode_leaf(c).1 as f64;
-        wide_sah_sum(&w.wide, 0, root_area, &area, &mut leaf) / root_area
+        self.wide.as_ref().map_or(0.0, |w| w.wide_sah_cost())
     }
 
     pub fn build(parts: &[FlatPart], params: &BuildParams, kernel: Kernel) -> Result<Self, Error> {

@@ -2154,9 +2154,15 @@ impl TopLevelAccel {
     /// the leaf blocks copied into it, and from each entry the object's
     /// wide nodes and blocks (an instanced object's boxes by their world
     /// boxes). An entry that starts at an object node counts that node's
-    /// test at its top-level slot box. 0 without a wide layout.
+    /// test at its top-level slot box. A top level walked directly
+    /// ([`TopLevelAccel::direct`]) counts its slot's tree alone, as the
+    /// flat mode counts its own. 0 without a wide layout.
     pub fn wide_sah_cost(&self) -> f64 {
         use crate::bvh::wide::{wide_root_area, wide_sah_sum};
+        // Walked directly, the tree is the slot's alone.
+        if let Some((_, w)) = self.direct_bvh() {
+            return w.wide_sah_cost();
+        }
         let Some(top) = &self.wide else { return 0.0 };
         let root_area = wide_root_area(top);
         if root_area <= 0.0 {
