@@ -585,6 +585,28 @@ pub struct WideTriangleBvh {
 }
 
 impl WideTriangleBvh {
+    /// Closest (or, with `ANY`, some) hit of a valid ray on the whole
+    /// tree (not empty), within the ray's interval, counting visited nodes:
+    /// [`crate::bvh::query_subtree`] from the root. The one-ray query of the
+    /// flat mode and of a top level walked directly.
+    #[inline]
+    pub fn query<const ANY: bool>(
+        &self,
+        kernel: crate::bvh::Kernel,
+        ray: &crate::Ray,
+        counters: &mut crate::bvh::TraversalCounters,
+    ) -> Option<LeafHit> {
+        crate::bvh::query_subtree::<ANY>(
+            &self.wide.nodes,
+            &self.blocks,
+            kernel,
+            0,
+            ray,
+            ray.t_max,
+            counters,
+        )
+    }
+
     /// Embree's SAH statistic of the tree as a ray walks it alone (see
     /// [`crate::bvh::wide::wide_sah_sum`]); 0 for an empty tree or a root
     /// box without area.

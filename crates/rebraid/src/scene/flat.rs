@@ -6,7 +6,6 @@
 use crate::bvh::triangle4::block_hit_record;
 use crate::bvh::{
     BuildParams, Kernel, TraversalCounters, WideTriangleBvh, intersect_many, occluded_many,
-    query_subtree,
 };
 use crate::{Error, Hit, MeshBvh, Ray, TriangleMesh};
 
@@ -95,16 +94,7 @@ impl FlatAccel {
                 .map(|h| self.map_hit(h)),
             Some(None) => None,
             Some(Some(w)) => {
-                let h = query_subtree::<false>(
-                    &w.wide.nodes,
-                    &w.blocks,
-                    self.kernel,
-                    0,
-                    ray,
-                    ray.t_max,
-                    counters,
-                )?;
-                let (t, u, v, k) = h;
+                let (t, u, v, k) = w.query::<false>(self.kernel, ray, counters)?;
                 let (prim_id, normal) = block_hit_record(&w.blocks, k);
                 Some(self.map_hit(Hit::on_mesh(t, u, v, prim_id, normal)))
             }
@@ -158,16 +148,7 @@ impl FlatAccel {
         match self.wide_entry(ray) {
             None => self.bvh.occluded(ray),
             Some(None) => false,
-            Some(Some(w)) => query_subtree::<true>(
-                &w.wide.nodes,
-                &w.blocks,
-                self.kernel,
-                0,
-                ray,
-                ray.t_max,
-                counters,
-            )
-            .is_some(),
+            Some(Some(w)) => w.query::<true>(self.kernel, ray, counters).is_some(),
         }
     }
 }

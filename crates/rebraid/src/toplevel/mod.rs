@@ -23,7 +23,7 @@ use crate::bvh::wide::{WIDE_EMPTY, WIDE_MAX_PRIMITIVES, decode_leaf, encode_leaf
 use crate::bvh::{
     BoxRay, BoxTester, Bvh, BvhNode, Kernel, MAX_DEPTH, SahCosts, TRAVERSAL_STACK, TesterFactory,
     TraversalCounters, WideBvh, WideNode, WideQuery, WideTriangleBvh, intersect_many,
-    occluded_many, query_subtree, subtree_with, traverse_with, with_kernel,
+    occluded_many, subtree_with, traverse_with, with_kernel,
 };
 use crate::transform::{transform_box, transform_normal};
 use crate::triangle::WatertightRay;
@@ -1947,15 +1947,7 @@ impl TopLevelAccel {
             return None;
         }
         if let Some((slot, w)) = self.direct_bvh() {
-            let h = query_subtree::<false>(
-                &w.wide.nodes,
-                &w.blocks,
-                self.kernel,
-                0,
-                ray,
-                ray.t_max,
-                counters,
-            )?;
+            let h = w.query::<false>(self.kernel, ray, counters)?;
             return Some(self.direct_hit(slot, w, h));
         }
         let mut walk = RayWalk::<false> {
@@ -2128,16 +2120,7 @@ impl TopLevelAccel {
             return false;
         }
         if let Some((_, w)) = self.direct_bvh() {
-            return query_subtree::<true>(
-                &w.wide.nodes,
-                &w.blocks,
-                self.kernel,
-                0,
-                ray,
-                ray.t_max,
-                counters,
-            )
-            .is_some();
+            return w.query::<true>(self.kernel, ray, counters).is_some();
         }
         let mut walk = RayWalk::<true> {
             accel: self,
