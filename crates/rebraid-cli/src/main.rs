@@ -125,7 +125,8 @@ struct SceneOpts {
     merge_placed: bool,
     /// Re-braiding: graft a merged BVH (`--merge-placed`) of at most this
     /// many triangles whole into the top level (0: never; larger ones stay
-    /// behind entries like any object).
+    /// behind entries like any object). A merged BVH that is the whole
+    /// scene is walked alone, without a top level, whatever this says.
     #[arg(long)]
     graft_merged_max_prims: Option<u32>,
 }

@@ -125,12 +125,20 @@ pub struct SceneParams {
     /// mesh or vertices, after a commit took it in) takes it out for good,
     /// as a baked instance's first move makes it an instance: that commit
     /// builds its own BVH and the merged one without it, later edits only
-    /// its own. Off by default: the one large build costs more wall time
-    /// than the objects' small ones (nexuiz, one thread: 0.75 of
-    /// `embree-two-level`'s build time with it, 1.07-1.27 without, in
-    /// session 30's runs of the figure), for diffuse rays 17-23% faster
-    /// there (wall time against a control of 1.02; 1.02 of `embree-flat`'s
-    /// instead of 0.78-0.85). `rebraid --merge-placed` turns it on.
+    /// its own. When the merged BVH is the whole scene (no other object, no
+    /// instance) the top level is walked as that BVH alone
+    /// ([`crate::toplevel::TopLevelAccel::direct`]).
+    ///
+    /// Off by default: the one large build takes more than the objects'
+    /// small ones (commit instructions nexuiz +7.9%, openarena +14.7%,
+    /// samurai +12.1%; nexuiz, one thread: 0.85-1.16 of
+    /// `embree-two-level`'s build time with it over session 31's runs,
+    /// 1.07-1.27 without), for diffuse rays 7-25% fewer instructions on
+    /// those scenes (nexuiz 0.92-0.95 of `embree-flat`'s wall time with it,
+    /// 0.78-0.85 without); and on the library scene, whose objects are all
+    /// members, the flat walk it becomes is slower than the re-braided one
+    /// (0.88 against 0.92 of `embree-flat`, session 30).
+    /// `rebraid --merge-placed` turns it on.
     pub merge_placed: bool,
 }
 

@@ -318,7 +318,8 @@ pub struct RebraidParams {
     /// entries, for 4-7 ms of build and 15.1 -> 23.7 MB) and not on the
     /// library at scale 1 (1M triangles: no measurable difference, for 74
     /// ms of build and 150 -> 199 MB); docs/performance.md, session 30.
-    /// Default 2^18.
+    /// Default 2^18. A merged BVH that is the whole scene is walked alone
+    /// ([`super::TopLevelAccel::direct`]) and never grafted.
     pub graft_merged_max_prims: u32,
     /// Lists longer than this are opened, binned and partitioned with
     /// data-parallel loops, and their halves built as parallel tasks.

@@ -415,7 +415,10 @@ pub struct TopLevelLayout {
     /// top level takes its whole tree. On nexuiz (every object merged)
     /// 1,462.5 -> 1,374.3 instructions per diffuse ray, wall time 1.05
     /// (docs/performance.md, session 30), for a copy of its nodes and
-    /// blocks (15.1 -> 23.7 MB).
+    /// blocks (15.1 -> 23.7 MB); since session 31 such a scene, the merged
+    /// BVH alone, is walked directly instead ([`TopLevelAccel::direct`]:
+    /// 1,271.0), and the graft serves a merged BVH beside other objects or
+    /// instances.
     pub graft_whole: Option<u32>,
 }
 
