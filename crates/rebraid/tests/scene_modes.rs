@@ -776,6 +776,18 @@ fn merged_placed_objects_match_brute_force_in_every_mode() {
             assert!(t.clone().with_merged(Some(bad)).is_err(), "{what}");
         }
     }
+    // The model's scene merged in `mode`, the merged BVH grafted whole or
+    // never, committed; with a label and the merged slot.
+    let committed = |model: &Model, mode: AccelMode, graft_merged: bool, what: &str| {
+        let what = format!("{what}, {mode:?} graft_merged {graft_merged}");
+        let mut p = merged(rebraid::bvh::Kernel::best());
+        p.mode = mode;
+        p.rebraid.graft_merged_max_prims = if graft_merged { u32::MAX } else { 0 };
+        let mut scene = model.to_scene(p);
+        scene.commit().unwrap();
+        let slot = top(&scene).merged.as_ref().expect("merged").slot;
+        (scene, slot, what)
+    };
     // The library case has no other object: in both two-level modes its
     // top level is the merged BVH alone, walked directly (no entry, no
     // graft), whatever the graft limit.
@@ -787,14 +799,8 @@ fn merged_placed_objects_match_brute_force_in_every_mode() {
         (AccelMode::Rebraided, false),
         (AccelMode::TwoLevel, false),
     ] {
-        let what = format!("alone {mode:?} graft_merged {graft_merged}");
-        let mut p = merged(rebraid::bvh::Kernel::best());
-        p.mode = mode;
-        p.rebraid.graft_merged_max_prims = if graft_merged { u32::MAX } else { 0 };
-        let mut scene = model.to_scene(p);
-        scene.commit().unwrap();
+        let (scene, slot, what) = committed(model, mode, graft_merged, "alone");
         let t = top(&scene);
-        let slot = t.merged.as_ref().expect("merged").slot;
         assert_eq!(t.direct, Some(slot), "{what}");
         assert!(t.grafted.is_empty() && t.blocks.is_empty(), "{what}");
         let mut counters = rebraid::bvh::TraversalCounters::default();
@@ -826,14 +832,8 @@ fn merged_placed_objects_match_brute_force_in_every_mode() {
         (AccelMode::Rebraided, false),
         (AccelMode::TwoLevel, true),
     ] {
-        let what = format!("beside an instance, {mode:?} graft_merged {graft_merged}");
-        let mut p = merged(rebraid::bvh::Kernel::best());
-        p.mode = mode;
-        p.rebraid.graft_merged_max_prims = if graft_merged { u32::MAX } else { 0 };
-        let mut scene = beside.to_scene(p);
-        scene.commit().unwrap();
+        let (scene, slot, what) = committed(&beside, mode, graft_merged, "beside an instance");
         let t = top(&scene);
-        let slot = t.merged.as_ref().expect("merged").slot;
         assert_eq!(t.direct, None, "{what}");
         let entered = entered_slots(t).contains(&slot);
         match (mode, graft_merged) {
