@@ -852,8 +852,7 @@ pub fn intersect_packet_from(
     mask: u32,
     lanes: &mut impl ClosestLanes,
 ) {
-    type Entry = PacketEntry;
-    let mut stack = [MaybeUninit::<Entry>::uninit(); PACKET_STACK];
+    let mut stack = [MaybeUninit::<PacketEntry>::uninit(); PACKET_STACK];
     let mut sp = 0usize;
     let (mut current, mut mask) = (start, mask);
     'walk: loop {
@@ -870,7 +869,7 @@ pub fn intersect_packet_from(
         } else {
             let node = &nodes[current as usize];
             // Hit children, sorted by distance (insertion sort, stable).
-            let mut hits = [MaybeUninit::<(f32, Entry)>::uninit(); 8];
+            let mut hits = [MaybeUninit::<(f32, PacketEntry)>::uninit(); 8];
             // SAFETY: a `Packet8` exists only on CPUs of the AVX2 level.
             let k = unsafe { packet.hit_children_sorted(node, mask, &mut hits) };
             if k > 0 {
