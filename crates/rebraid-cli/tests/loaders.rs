@@ -5,6 +5,7 @@
 
 #[path = "../../rebraid/tests/support/scenes.rs"]
 mod scenes;
+mod support;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -13,6 +14,7 @@ use rebraid::SceneDesc;
 use rebraid_cli::loaders::{
     LoadError, LoadOptions, Location, Split, load_scene, load_scene_with_warnings,
 };
+use support::gltf::{QUAD, glb, glb_buffer, tiny_gltf_json};
 
 fn opts(split: Split, flatten_instances: bool) -> LoadOptions {
     LoadOptions {
@@ -305,89 +307,6 @@ fn ply_ascii_and_binary_cubes() {
     assert_eq!(meshes[0].indices[1], [0, 2, 1]);
 }
 
-// --- A tiny GLB built by hand: JSON chunk + binary chunk. ---
-
-fn glb(json: &str, bin: &[u8]) -> Vec<u8> {
-    let mut j = json.as_bytes().to_vec();
-    while !j.len().is_multiple_of(4) {
-        j.push(b' ');
-    }
-    let mut b = bin.to_vec();
-    while !b.len().is_multiple_of(4) {
-        b.push(0);
-    }
-    let total = 12 + 8 + j.len() + if b.is_empty() { 0 } else { 8 + b.len() };
-    let mut out = Vec::with_capacity(total);
-    out.extend(b"glTF");
-    out.extend(2u32.to_le_bytes());
-    out.extend((total as u32).to_le_bytes());
-    out.extend((j.len() as u32).to_le_bytes());
-    out.extend(b"JSON");
-    out.extend(j);
-    if !b.is_empty() {
-        out.extend((b.len() as u32).to_le_bytes());
-        out.extend(b"BIN\0");
-        out.extend(b);
-    }
-    out
-}
-
-/// Buffer: 4 positions (48 bytes), then 3 u16 indices (6 bytes, padded to 8).
-fn glb_buffer(positions: &[[f32; 3]; 4], indices: [u16; 3]) -> Vec<u8> {
-    let mut b = Vec::new();
-    for p in positions {
-        for c in p {
-            b.extend(c.to_le_bytes());
-        }
-    }
-    for i in indices {
-        b.extend(i.to_le_bytes());
-    }
-    b.extend([0, 0]);
-    b
-}
-
-const QUAD: [[f32; 3]; 4] = [[0., 0., 0.], [1., 0., 0.], [0., 1., 0.], [1., 1., 0.]];
-
-/// Mesh 0: an indexed triangle (two primitives: triangles + points).
-/// Mesh 1: a non-indexed triangle strip over 4 vertices (2 triangles).
-/// Nodes: 0 root (translate x 10; children 1, 2), 1 (scale 2,1,1; mesh 0),
-/// 2 (rotate 90 degrees about z; child 3), 3 (translate y 5; mesh 1), 4 (not
-/// in the scene; mesh 0).
-fn tiny_gltf_json(index_count: u32, node0_extra: &str, pos_min: &str) -> String {
-    format!(
-        r#"{{
-  "asset": {{"version": "2.0"}},
-  "buffers": [{{"byteLength": 56}}],
-  "bufferViews": [
-    {{"buffer": 0, "byteOffset": 0, "byteLength": 48}},
-    {{"buffer": 0, "byteOffset": 48, "byteLength": 6}}
-  ],
-  "accessors": [
-    {{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": {pos_min}, "max": [1, 1, 0]}},
-    {{"bufferView": 1, "componentType": 5123, "count": {index_count}, "type": "SCALAR"}}
-  ],
-  "materials": [{{"name": "steel"}}, {{"name": "brass"}}],
-  "meshes": [
-    {{"name": "tri", "primitives": [
-      {{"attributes": {{"POSITION": 0}}, "indices": 1, "material": 0}},
-      {{"attributes": {{"POSITION": 0}}, "mode": 0, "material": 1}}
-    ]}},
-    {{"name": "strip", "primitives": [{{"attributes": {{"POSITION": 0}}, "mode": 5, "material": 1}}]}}
-  ],
-  "nodes": [
-    {{"name": "root", "translation": [10, 0, 0], "children": [1, 2]{node0_extra}}},
-    {{"name": "stretched", "scale": [2, 1, 1], "mesh": 0}},
-    {{"name": "turned", "rotation": [0, 0, 0.70710677, 0.70710677], "children": [3]}},
-    {{"name": "lifted", "translation": [0, 5, 0], "mesh": 1}},
-    {{"name": "orphan", "mesh": 0}}
-  ],
-  "scenes": [{{"nodes": [0]}}],
-  "scene": 0
-}}"#
-    )
-}
-
 #[test]
 fn glb_node_hierarchy_instances_and_flattening() {
     let dir = tempfile::tempdir().unwrap();
@@ -631,6 +550,18 @@ fn gltf_errors_name_the_element() {
     );
     let e = load_err("huge.glb", &huge, &["node 1", "stretched"]);
     assert!(matches!(e, LoadError::NonFinite { .. }), "{e}");
+    // A POSITION accessor past the accessors (a panic inside `gltf-json`'s
+    // validation before the loader checked it; found by the fuzz smoke test).
+    let json = tiny_gltf_json(3, "", "[0, 0, 0]");
+    let past = r#"[{"attributes": {"POSITION": 5}, "mode": 5"#;
+    let bad = json.replace(r#"[{"attributes": {"POSITION": 0}, "mode": 5"#, past);
+    assert_ne!(bad, json);
+    let e = load_err(
+        "position_accessor.glb",
+        &glb(&bad, &buf),
+        &["mesh 1 primitive 0", "POSITION", "accessor 5 of 2"],
+    );
+    assert!(matches!(e, LoadError::BadIndex { .. }), "{e}");
     // A cut file.
     let whole = glb(&tiny_gltf_json(3, "", "[0, 0, 0]"), &buf);
     let e = load_err("cut.glb", &whole[..whole.len() - 20], &[]);

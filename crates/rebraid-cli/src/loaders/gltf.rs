@@ -64,23 +64,29 @@ pub fn parse_gltf(
             }
         }
     }
-    let gltf =
-        ::gltf::Gltf::from_slice(bytes).map_err(|e| whole(format!("not valid glTF: {e}")))?;
-    let buffers = ::gltf::import_buffers(&gltf.document, base_dir, gltf.blob.clone()).map_err(
-        |e| match e {
-            ::gltf::Error::BufferLength { .. } => LoadError::Truncated {
-                file: file.to_path_buf(),
-                at: Location::File,
-                detail: e.to_string(),
-            },
-            _ => LoadError::Unsupported {
-                file: file.to_path_buf(),
-                at: Location::File,
-                detail: format!("cannot load buffers: {e}"),
-            },
+    // Parsed unchecked, then checked by `Document::from_json` once the
+    // indices its validation trusts are known to be in range (see
+    // `check_position_accessors`).
+    let unchecked = ::gltf::Gltf::from_slice_without_validation(bytes)
+        .map_err(|e| whole(format!("not valid glTF: {e}")))?;
+    let blob = unchecked.blob;
+    let root = unchecked.document.into_json();
+    check_position_accessors(&root, file)?;
+    let document =
+        ::gltf::Document::from_json(root).map_err(|e| whole(format!("not valid glTF: {e}")))?;
+    let buffers = ::gltf::import_buffers(&document, base_dir, blob).map_err(|e| match e {
+        ::gltf::Error::BufferLength { .. } => LoadError::Truncated {
+            file: file.to_path_buf(),
+            at: Location::File,
+            detail: e.to_string(),
         },
-    )?;
-    let doc = &gltf.document;
+        _ => LoadError::Unsupported {
+            file: file.to_path_buf(),
+            at: Location::File,
+            detail: format!("cannot load buffers: {e}"),
+        },
+    })?;
+    let doc = &document;
     let mut warnings = Vec::new();
 
     // Objects: one per mesh or per primitive; `mesh_objects[m]` lists the
@@ -207,6 +213,35 @@ pub fn parse_gltf(
         SceneDesc { objects, instances }
     };
     Ok(Loaded { scene, warnings })
+}
+
+/// Every primitive's `POSITION` accessor index is in range. `gltf-json`
+/// 1.4's validation reads that accessor (for its `min` and `max`) by
+/// indexing before it checks the index, so a file naming an accessor past
+/// the array would panic there instead of failing (found by the fuzz smoke
+/// test, `tests/loader_fuzz.rs`); every other index it checks itself.
+fn check_position_accessors(root: &::gltf::json::Root, file: &Path) -> Result<(), LoadError> {
+    use ::gltf::json::mesh::Semantic;
+    use ::gltf::json::validation::Checked;
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, prim) in mesh.primitives.iter().enumerate() {
+            let Some(a) = prim.attributes.get(&Checked::Valid(Semantic::Positions)) else {
+                continue;
+            };
+            if a.value() >= root.accessors.len() {
+                return Err(LoadError::BadIndex {
+                    file: file.to_path_buf(),
+                    at: Location::Element(format!("mesh {m} primitive {p}")),
+                    detail: format!(
+                        "POSITION names accessor {} of {}",
+                        a.value(),
+                        root.accessors.len()
+                    ),
+                });
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Every node reachable from the roots, with its world transform, in
