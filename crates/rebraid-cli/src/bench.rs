@@ -500,6 +500,39 @@ impl EmbreeApi {
     }
 }
 
+/// Embree's scene flags for a pair of bench rows (`rebraid bench
+/// --embree-flags`). Embree's default traversal and triangle test are not
+/// watertight (a ray through the edge two triangles share can pass between
+/// them); `RTC_SCENE_FLAG_ROBUST` makes them so, as rebraid's kernels
+/// always are (Woop et al.'s watertight test, conservative box tests): the
+/// `-robust` rows compare the two under the same guarantee.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum EmbreeFlags {
+    /// No scene flags: Embree's fast, not watertight, kernels.
+    Default,
+    /// `RTC_SCENE_FLAG_ROBUST` on every scene (the instanced ones too).
+    Robust,
+}
+
+impl EmbreeFlags {
+    /// Appended to the Embree modes' names after the ISA's suffix and
+    /// before the API's (`embree-flat-robust`, `embree-flat-robust-stream`).
+    pub fn mode_suffix(self) -> &'static str {
+        match self {
+            EmbreeFlags::Default => "",
+            EmbreeFlags::Robust => "-robust",
+        }
+    }
+
+    /// The name `--embree-flags` and the worker's `--flags` take.
+    pub fn arg(self) -> &'static str {
+        match self {
+            EmbreeFlags::Default => "default",
+            EmbreeFlags::Robust => "robust",
+        }
+    }
+}
+
 /// Ratio tables of `mode` against each baseline mode: Mrays/s ours over
 /// theirs per ray set, build time theirs over ours. `cycles` holds the rows
 /// of each measurement cycle (see [`median_rows`]). With

@@ -34,7 +34,7 @@ use embree3::{
 use glam::{Affine3A, Mat4, Vec3};
 use rebraid::{INVALID_ID, Ray, SceneDesc, TriangleMesh};
 
-use crate::bench::EmbreeIsa;
+use crate::bench::{EmbreeFlags, EmbreeIsa};
 
 /// How a [`SceneDesc`] is laid out in Embree.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -117,6 +117,13 @@ impl std::fmt::Debug for EmbreeScene {
 
 /// A device whose thread count follows the current rayon pool, with a
 /// memory monitor counting its allocations.
+/// Embree's scene flags for `flags` (set before the scene's first commit).
+fn set_flags(scene: &mut Scene<'_>, flags: EmbreeFlags) {
+    if flags == EmbreeFlags::Robust {
+        scene.set_flags(embree3::SceneFlags::ROBUST);
+    }
+}
+
 fn new_device(max_isa: EmbreeIsa) -> anyhow::Result<(Device, Arc<AtomicIsize>)> {
     let config = Config {
         threads: rayon::current_num_threads() as u32,
@@ -206,12 +213,24 @@ impl EmbreeScene {
         mode: EmbreeMode,
         max_isa: EmbreeIsa,
     ) -> anyhow::Result<(EmbreeScene, f64)> {
+        Self::build_with(desc, mode, max_isa, EmbreeFlags::Default)
+    }
+
+    /// [`EmbreeScene::build_with_isa`] with `flags` on every scene it makes
+    /// (the top scene and, in the two-level mode, each instanced one).
+    pub fn build_with(
+        desc: &SceneDesc,
+        mode: EmbreeMode,
+        max_isa: EmbreeIsa,
+        flags: EmbreeFlags,
+    ) -> anyhow::Result<(EmbreeScene, f64)> {
         desc.validate().context("invalid scene description")?;
         let (device, memory) = new_device(max_isa)?;
         let start = Instant::now();
         let mut top = device
             .create_scene()
             .map_err(|e| anyhow::anyhow!("rtcNewScene failed: {e:?}"))?;
+        set_flags(&mut top, flags);
         let mut instanced = Vec::new();
         let ids = match mode {
             EmbreeMode::Flat => {
@@ -225,6 +244,7 @@ impl EmbreeScene {
                     &mut top,
                     &mut instanced,
                     desc,
+                    flags,
                 )?)
             }
         };
@@ -301,6 +321,7 @@ impl EmbreeScene {
         top: &mut Scene<'static>,
         instanced: &mut Vec<Scene<'static>>,
         desc: &SceneDesc,
+        flags: EmbreeFlags,
     ) -> anyhow::Result<Vec<(u32, u32)>> {
         let mut ids = Vec::new();
         for (i, o) in desc.objects.iter().enumerate() {
@@ -326,6 +347,7 @@ impl EmbreeScene {
                         .create_scene()
                         .map_err(|e| anyhow::anyhow!("rtcNewScene failed: {e:?}"))?;
                     scene.set_build_quality(BuildQuality::MEDIUM);
+                    set_flags(&mut scene, flags);
                     let g = triangle_geometry(device, &mesh.positions, &mesh.indices)?;
                     scene.attach_geometry(&g);
                     scene.commit();

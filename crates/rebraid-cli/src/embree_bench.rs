@@ -7,13 +7,16 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 
-use crate::bench::{BenchRow, Best, EmbreeApi, EmbreeIsa, RaySetResult, median, read_rays};
+use crate::bench::{
+    BenchRow, Best, EmbreeApi, EmbreeFlags, EmbreeIsa, RaySetResult, median, read_rays,
+};
 use crate::embree::{EmbreeMode, EmbreeScene};
 use crate::loaders::LoadOptions;
 use crate::scene_input::SceneInput;
 
 /// Build and trace in Embree inside a pool of `threads` threads, with
-/// kernels up to `max_isa`, each batch through `api`.
+/// kernels up to `max_isa`, each batch through `api`, its scenes made with
+/// `flags`.
 pub fn run_worker(
     input: &SceneInput,
     opts: &LoadOptions,
@@ -21,7 +24,7 @@ pub fn run_worker(
     mode: &str,
     threads: usize,
     reps: usize,
-    (max_isa, api): (EmbreeIsa, EmbreeApi),
+    (max_isa, api, flags): (EmbreeIsa, EmbreeApi, EmbreeFlags),
 ) -> anyhow::Result<BenchRow> {
     let emode = match mode {
         "embree-flat" => EmbreeMode::Flat,
@@ -41,12 +44,12 @@ pub fn run_worker(
         // start-up, which our builds, timed in a process that has built
         // before, do not (`bench --embree` runs one timed build per worker
         // when it measures in cycles).
-        drop(EmbreeScene::build_with_isa(&desc, emode, max_isa)?);
+        drop(EmbreeScene::build_with(&desc, emode, max_isa, flags)?);
         let mut build_ms = Vec::new();
         let mut scene = None;
         for _ in 0..reps {
             drop(scene.take());
-            let (s, ms) = EmbreeScene::build_with_isa(&desc, emode, max_isa)?;
+            let (s, ms) = EmbreeScene::build_with(&desc, emode, max_isa, flags)?;
             build_ms.push(ms);
             scene = Some(s);
         }

@@ -9,7 +9,9 @@ use anyhow::{Context, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use rebraid::{AccelMode, RefBudget, Scene, SceneParams};
 use rebraid_cli::animate;
-use rebraid_cli::bench::{self, BenchConfig, BenchRow, CycleStat, EmbreeApi, EmbreeIsa};
+use rebraid_cli::bench::{
+    self, BenchConfig, BenchRow, CycleStat, EmbreeApi, EmbreeFlags, EmbreeIsa,
+};
 use rebraid_cli::camera::{Camera, UpAxis};
 use rebraid_cli::loaders::{LoadOptions, Split};
 use rebraid_cli::render::{self, RenderSettings};
@@ -379,6 +381,12 @@ struct BenchArgs {
     /// `embree-flat-stream` and so on).
     #[arg(long, value_enum, value_delimiter = ',', default_value = "single")]
     embree_api: Vec<EmbreeApi>,
+    /// With `--embree`: Embree's scene flags, comma-separated for a pair of
+    /// Embree rows each (`default`: none, Embree's fast kernels, which are
+    /// not watertight; `robust`: `RTC_SCENE_FLAG_ROBUST`, watertight as
+    /// ours always are, rows named `embree-flat-robust` and so on).
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "default")]
+    embree_flags: Vec<EmbreeFlags>,
     /// Ray sets to trace, comma-separated (the others are generated but
     /// not traced and report 0): for profiling one workload.
     #[arg(long, default_value = "primary,shadow,diffuse")]
@@ -495,6 +503,8 @@ struct EmbreeWorkerArgs {
     max_isa: EmbreeIsa,
     #[arg(long, value_enum, default_value = "single")]
     api: EmbreeApi,
+    #[arg(long, value_enum, default_value = "default")]
+    flags: EmbreeFlags,
 }
 
 fn main() -> ExitCode {
@@ -711,10 +721,7 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
     println!();
     print!("{}", bench::format_answers(&rows));
     let baselines: Vec<String> = embree_variants(&a)
-        .flat_map(|(isa, api)| {
-            ["embree-two-level", "embree-flat"]
-                .map(|m| format!("{m}{}{}", isa.mode_suffix(), api.mode_suffix()))
-        })
+        .flat_map(|v| ["embree-two-level", "embree-flat"].map(|m| embree_row_name(m, v)))
         .collect();
     let baselines: Vec<&str> = baselines.iter().map(String::as_str).collect();
     let ratios = bench::format_ratios(&all_cycles, "rebraided", &baselines, CycleStat::Median);
@@ -747,11 +754,28 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The Embree variants `bench --embree` times: every ISA with every API.
-fn embree_variants(a: &BenchArgs) -> impl Iterator<Item = (EmbreeIsa, EmbreeApi)> + '_ {
-    a.embree_isa
-        .iter()
-        .flat_map(|&isa| a.embree_api.iter().map(move |&api| (isa, api)))
+/// One Embree configuration of `bench --embree`.
+type EmbreeVariant = (EmbreeIsa, EmbreeApi, EmbreeFlags);
+
+/// The Embree variants `bench --embree` times: every ISA with every set of
+/// flags and every API.
+fn embree_variants(a: &BenchArgs) -> impl Iterator<Item = EmbreeVariant> + '_ {
+    a.embree_isa.iter().flat_map(move |&isa| {
+        a.embree_flags
+            .iter()
+            .flat_map(move |&flags| a.embree_api.iter().map(move |&api| (isa, api, flags)))
+    })
+}
+
+/// The bench row of Embree `mode` in `variant`: `embree-flat`,
+/// `embree-flat-avx2-robust-stream` and so on.
+fn embree_row_name(mode: &str, (isa, api, flags): EmbreeVariant) -> String {
+    format!(
+        "{mode}{}{}{}",
+        isa.mode_suffix(),
+        flags.mode_suffix(),
+        api.mode_suffix()
+    )
 }
 
 /// A fresh directory for the ray file the Embree workers read.
@@ -773,10 +797,11 @@ fn embree_rows(
 ) -> anyhow::Result<Vec<BenchRow>> {
     let mut rows = Vec::new();
     for &t in threads {
-        for (isa, api, mode) in embree_variants(a)
-            .flat_map(|(isa, api)| ["embree-flat", "embree-two-level"].map(|m| (isa, api, m)))
+        for (v, mode) in
+            embree_variants(a).flat_map(|v| ["embree-flat", "embree-two-level"].map(|m| (v, m)))
         {
-            let name = format!("{mode}{}{}", isa.mode_suffix(), api.mode_suffix());
+            let (isa, api, flags) = v;
+            let name = embree_row_name(mode, v);
             eprint!(
                 "\r\x1b[2K{}: {name} ({t} thr) in a worker process{tag}",
                 input.name(),
@@ -784,7 +809,8 @@ fn embree_rows(
             let mut cmd = worker_command("embree-worker", input, rays, t, reps, a)?;
             cmd.args(["--mode", mode])
                 .args(["--max-isa", isa.arg()])
-                .args(["--api", api.arg()]);
+                .args(["--api", api.arg()])
+                .args(["--flags", flags.arg()]);
             let mut row = worker_row(cmd, "Embree worker")?;
             row.scene = input.name();
             row.mode = name;
@@ -916,7 +942,7 @@ fn run_embree_worker(a: EmbreeWorkerArgs) -> anyhow::Result<()> {
         &w.mode,
         w.threads,
         w.reps,
-        (a.max_isa, a.api),
+        (a.max_isa, a.api, a.flags),
     )?;
     println!("{}", serde_json::to_string(&row)?);
     Ok(())

@@ -704,20 +704,31 @@ fn embree_rows_agree_with_ours() {
         "4",
         "--json",
     ];
-    let with_embree = ["--embree", "--embree-api", "single,stream"];
+    let with_embree = [
+        "--embree",
+        "--embree-api",
+        "single,stream",
+        "--embree-flags",
+        "default,robust",
+    ];
     let out = ok(
         dir.path(),
         &[&args[..], &[s(&json)], &with_embree[..]].concat(),
     );
     assert!(out.contains("embree-flat"), "{out}");
     assert!(out.contains("rebraided / embree-two-level-stream"), "{out}");
+    assert!(out.contains("rebraided / embree-flat-robust "), "{out}");
     let rows = read_rows(&json);
-    assert_eq!(rows.len(), 7, "{rows:#?}");
+    assert_eq!(rows.len(), 11, "{rows:#?}");
     let embree = [
         "embree-flat",
         "embree-two-level",
         "embree-flat-stream",
         "embree-two-level-stream",
+        "embree-flat-robust",
+        "embree-two-level-robust",
+        "embree-flat-robust-stream",
+        "embree-two-level-robust-stream",
     ];
     for m in MODES.iter().chain(&embree) {
         check_row_keys(row(&rows, m, 1), 64 * 36);
