@@ -391,46 +391,41 @@ fn embree_modes_agree_with_every_rebraid_mode() {
     }
 }
 
-/// The bench's `--embree-isa` rows: Embree capped at AVX2 and at SSE4.2
-/// runs other kernels than its own choice, and they answer the same rays as
-/// the re-braided scene.
+/// The bench's other Embree rows answer the same rays as the re-braided
+/// scene: `--embree-isa`, Embree capped at AVX2 and at SSE4.2 (other
+/// kernels than its own choice), and `--embree-flags robust`, its
+/// watertight kernels (`RTC_SCENE_FLAG_ROBUST`, on the instanced scenes
+/// too), whose other triangle test computes barycentrics its own way.
 #[test]
-fn embree_capped_at_avx2_and_sse42_agrees_with_rebraid() {
-    let desc = test_scene(9);
-    let rays = random_rays(&desc, 4000, 13);
-    let mut scene = Scene::from_desc(&desc, SceneParams::default()).unwrap();
-    scene.set_mode(AccelMode::Rebraided);
-    scene.commit().unwrap();
-    let mut ref_hits = vec![None; rays.len()];
-    scene.intersect_batch(&rays, &mut ref_hits);
-    for isa in [EmbreeIsa::Avx2, EmbreeIsa::Sse42] {
-        for mode in EmbreeMode::ALL {
-            let (es, _) = EmbreeScene::build_with_isa(&desc, mode, isa).unwrap();
-            let what = format!("{} capped at {}", mode.name(), isa.arg());
-            let tally = compare(&what, &es, &scene, &rays, &ref_hits);
-            eprintln!("{what}: {tally:?}");
+fn embree_capped_and_robust_agree_with_rebraid() {
+    // Seed 11 has one ray whose barycentrics the robust test puts 1.4e-3
+    // from ours (see `Tally::rounding`).
+    for (seed, ray_seed) in [(9, 13), (11, 17)] {
+        let desc = test_scene(seed);
+        let rays = random_rays(&desc, 4000, ray_seed);
+        let mut scene = Scene::from_desc(&desc, SceneParams::default()).unwrap();
+        scene.set_mode(AccelMode::Rebraided);
+        scene.commit().unwrap();
+        let mut ref_hits = vec![None; rays.len()];
+        scene.intersect_batch(&rays, &mut ref_hits);
+        for (isa, flags) in [
+            (EmbreeIsa::Avx2, EmbreeFlags::Default),
+            (EmbreeIsa::Sse42, EmbreeFlags::Default),
+            (EmbreeIsa::Auto, EmbreeFlags::Robust),
+            (EmbreeIsa::Avx2, EmbreeFlags::Robust),
+        ] {
+            for mode in EmbreeMode::ALL {
+                let (es, _) = EmbreeScene::build_with(&desc, mode, isa, flags).unwrap();
+                let what = format!(
+                    "scene {seed}: {} at {} with {} flags",
+                    mode.name(),
+                    isa.arg(),
+                    flags.arg()
+                );
+                let tally = compare(&what, &es, &scene, &rays, &ref_hits);
+                eprintln!("{what}: {tally:?}");
+            }
         }
-    }
-}
-
-/// The bench's `--embree-flags robust` rows: Embree's watertight kernels
-/// (`RTC_SCENE_FLAG_ROBUST`, on the instanced scenes too) answer the same
-/// rays as the re-braided scene.
-#[test]
-fn embree_robust_agrees_with_rebraid() {
-    let desc = test_scene(11);
-    let rays = random_rays(&desc, 4000, 17);
-    let mut scene = Scene::from_desc(&desc, SceneParams::default()).unwrap();
-    scene.set_mode(AccelMode::Rebraided);
-    scene.commit().unwrap();
-    let mut ref_hits = vec![None; rays.len()];
-    scene.intersect_batch(&rays, &mut ref_hits);
-    for mode in EmbreeMode::ALL {
-        let (es, _) =
-            EmbreeScene::build_with(&desc, mode, EmbreeIsa::Auto, EmbreeFlags::Robust).unwrap();
-        let what = format!("{} robust", mode.name());
-        let tally = compare(&what, &es, &scene, &rays, &ref_hits);
-        eprintln!("{what}: {tally:?}");
     }
 }
 
