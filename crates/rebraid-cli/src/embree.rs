@@ -115,8 +115,6 @@ impl std::fmt::Debug for EmbreeScene {
     }
 }
 
-/// A device whose thread count follows the current rayon pool, with a
-/// memory monitor counting its allocations.
 /// Embree's scene flags for `flags` (set before the scene's first commit).
 fn set_flags(scene: &mut Scene<'_>, flags: EmbreeFlags) {
     if flags == EmbreeFlags::Robust {
@@ -124,6 +122,8 @@ fn set_flags(scene: &mut Scene<'_>, flags: EmbreeFlags) {
     }
 }
 
+/// A device whose thread count follows the current rayon pool, with a
+/// memory monitor counting its allocations.
 fn new_device(max_isa: EmbreeIsa) -> anyhow::Result<(Device, Arc<AtomicIsize>)> {
     let config = Config {
         threads: rayon::current_num_threads() as u32,
