@@ -22,7 +22,6 @@ mod scene_common;
 use rand::Rng;
 use rebraid::bvh::Kernel;
 use rebraid::glam::{Affine3A, Vec3};
-use rebraid::scene::Accel;
 use rebraid::{AccelMode, Error, RebraidParams, Scene, SceneParams, TriangleMesh, UpdatePolicy};
 use scene_common::*;
 
@@ -263,38 +262,6 @@ fn refused_edit(rng: &mut impl Rng, scene: &mut Scene, model: &Model) -> String 
     what.into()
 }
 
-/// Counts, the top level and the answers after a commit.
-fn check(scene: &Scene, model: &Model, seed: u64, what: &str) {
-    let mode = scene.mode();
-    assert!(!scene.needs_commit(), "{what}");
-    assert_eq!(scene.object_count(), model.objects.len(), "{what}");
-    assert_eq!(scene.instance_count(), model.instances.len(), "{what}");
-    assert_eq!(scene.world_triangles(), model.world_triangles(), "{what}");
-    for (&id, (mesh, _)) in &model.objects {
-        assert_eq!(scene.mesh(id).unwrap(), mesh, "{what}: object {id}");
-    }
-    match scene.accel() {
-        Accel::TopLevel(t) => {
-            assert_ne!(mode, AccelMode::Flat, "{what}");
-            check_top(t, model, what);
-        }
-        Accel::Flat(_) => assert_eq!(mode, AccelMode::Flat, "{what}"),
-        Accel::Empty => assert_eq!(model.world_triangles(), 0, "{what}"),
-    }
-    let world = model.world();
-    if world.tris.is_empty() {
-        return;
-    }
-    let rays = random_rays(&mut rng(seed), &world, 150, SCENE_LO, SCENE_HI);
-    check_scene(
-        scene,
-        &world,
-        &rays,
-        mode == AccelMode::Flat || model.instances.is_empty(),
-        what,
-    );
-}
-
 #[test]
 fn random_edit_sequences_match_brute_force() {
     // `REBRAID_EDIT_SEEDS=200` for a longer run.
@@ -332,7 +299,7 @@ fn random_edit_sequences_match_brute_force() {
                 scene
                     .commit()
                     .unwrap_or_else(|e| panic!("{what}: commit failed: {e}"));
-                check(&scene, &model, seed * 1000 + step as u64, &what);
+                check_commit(&scene, &model, 150, seed * 1000 + step as u64, &what);
                 // Keep the last steps only in the message.
                 let keep = log.len().saturating_sub(12);
                 log.drain(..keep);

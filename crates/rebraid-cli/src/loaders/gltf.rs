@@ -72,9 +72,9 @@ pub fn parse_gltf(
     let blob = unchecked.blob;
     let root = unchecked.document.into_json();
     check_position_accessors(&root, file)?;
-    let document =
+    let doc =
         ::gltf::Document::from_json(root).map_err(|e| whole(format!("not valid glTF: {e}")))?;
-    let buffers = ::gltf::import_buffers(&document, base_dir, blob).map_err(|e| match e {
+    let buffers = ::gltf::import_buffers(&doc, base_dir, blob).map_err(|e| match e {
         ::gltf::Error::BufferLength { .. } => LoadError::Truncated {
             file: file.to_path_buf(),
             at: Location::File,
@@ -86,7 +86,6 @@ pub fn parse_gltf(
             detail: format!("cannot load buffers: {e}"),
         },
     })?;
-    let doc = &document;
     let mut warnings = Vec::new();
 
     // Objects: one per mesh or per primitive; `mesh_objects[m]` lists the
@@ -153,7 +152,7 @@ pub fn parse_gltf(
         mesh_objects.push(ids);
     }
 
-    let placements = placements(doc, file)?;
+    let placements = placements(&doc, file)?;
     let mut instances = Vec::new();
     let mut flat = Vec::new();
     for (node, world) in placements {

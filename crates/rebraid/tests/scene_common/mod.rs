@@ -16,7 +16,7 @@ use rebraid::glam::{Affine3A, EulerRot, Mat3, Quat, Vec3};
 use rebraid::scene::Accel;
 use rebraid::toplevel::TopLevelAccel;
 use rebraid::triangle::{WatertightRay, geometric_normal, intersect_triangle, is_degenerate};
-use rebraid::{Aabb, Hit, INVALID_ID, Ray, Scene, SceneParams, TriangleMesh};
+use rebraid::{Aabb, AccelMode, Hit, INVALID_ID, Ray, Scene, SceneParams, TriangleMesh};
 
 pub fn rng(seed: u64) -> Pcg64 {
     Pcg64::seed_from_u64(seed)
@@ -510,6 +510,42 @@ pub fn check_scene(scene: &Scene, world: &World, rays: &[Ray], exact: bool, what
         "{what}: {tally:?}: too many answers only within rounding"
     );
     tally
+}
+
+/// A scene after a commit against its model: nothing left to commit, the
+/// model's counts and meshes, the acceleration structure of the scene's
+/// mode (a top level valid and reaching every placement once, see
+/// [`check_top`]), and `n_rays` random rays answered as the brute force over
+/// the model answers them (nothing is traced in an empty world).
+pub fn check_commit(scene: &Scene, model: &Model, n_rays: usize, seed: u64, what: &str) {
+    let mode = scene.mode();
+    assert!(!scene.needs_commit(), "{what}");
+    assert_eq!(scene.object_count(), model.objects.len(), "{what}");
+    assert_eq!(scene.instance_count(), model.instances.len(), "{what}");
+    assert_eq!(scene.world_triangles(), model.world_triangles(), "{what}");
+    for (&id, (mesh, _)) in &model.objects {
+        assert_eq!(scene.mesh(id).unwrap(), mesh, "{what}: object {id}");
+    }
+    match scene.accel() {
+        Accel::TopLevel(t) => {
+            assert_ne!(mode, AccelMode::Flat, "{what}");
+            check_top(t, model, what);
+        }
+        Accel::Flat(_) => assert_eq!(mode, AccelMode::Flat, "{what}: flat accel"),
+        Accel::Empty => assert_eq!(model.world_triangles(), 0, "{what}"),
+    }
+    let world = model.world();
+    if world.tris.is_empty() {
+        return;
+    }
+    let rays = random_rays(&mut rng(seed), &world, n_rays, SCENE_LO, SCENE_HI);
+    check_scene(
+        scene,
+        &world,
+        &rays,
+        mode == AccelMode::Flat || model.instances.is_empty(),
+        what,
+    );
 }
 
 /// The committed top level (panics in flat mode or when empty).
