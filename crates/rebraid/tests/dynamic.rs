@@ -648,10 +648,11 @@ fn animated_transform_interpolates() {
 
 /// The re-braided top level copies the triangle blocks of the object leaves
 /// it enters directly (`RebraidParams::inline_leaf_blocks`); a scene
-/// committed again hands the previous copies' buffer to the next top level
-/// instead of allocating (and paging in) another.
+/// committed again hands the previous copies' buffer, and the rest of its
+/// layout's arrays (collapsed nodes, entries, per-block placements), to
+/// the next top level instead of allocating (and paging in) others.
 #[test]
-fn copied_leaf_blocks_reuse_the_previous_commits_buffer() {
+fn layout_arrays_reuse_the_previous_commits_buffers() {
     let mut s = Scene::with_params(SceneParams {
         mode: AccelMode::Rebraided,
         ..Default::default()
@@ -665,15 +666,38 @@ fn copied_leaf_blocks_reuse_the_previous_commits_buffer() {
         Accel::TopLevel(t) => (t.blocks.as_ptr(), t.blocks.len()),
         _ => panic!("re-braided"),
     };
+    // The other arrays' addresses, and their lengths.
+    let others = |s: &Scene| match s.accel() {
+        Accel::TopLevel(t) => {
+            let w = t.wide.as_ref().expect("a wide top level");
+            (
+                [
+                    w.nodes.as_ptr() as usize,
+                    t.entries.as_ptr() as usize,
+                    t.entry_refs.as_ptr() as usize,
+                    t.block_entry.as_ptr() as usize,
+                    t.block_placement.as_ptr() as usize,
+                    t.block_normal_scale.as_ptr() as usize,
+                ],
+                [w.nodes.len(), t.entries.len()],
+            )
+        }
+        _ => panic!("re-braided"),
+    };
     let (p0, n0) = blocks(&s);
+    let (q0, m0) = others(&s);
     assert!(n0 > 0, "the overlapping grids open down to leaves");
     let moved: Vec<Vec3> = m.positions.iter().map(|p| *p + Vec3::Y * 0.01).collect();
     s.set_vertices(id, &moved).unwrap();
     s.commit().unwrap();
     let (p1, n1) = blocks(&s);
+    let (q1, m1) = others(&s);
     // A small move: as many blocks copied (or fewer), into the old buffer.
     assert!(n1 > 0 && n1 <= n0, "{n1} blocks after {n0}");
     assert_eq!(p1, p0, "the buffer was not reused");
+    // As many nodes and entries (or fewer), in the old arrays.
+    assert!(m1[0] <= m0[0] && m1[1] <= m0[1], "{m1:?} after {m0:?}");
+    assert_eq!(q1, q0, "the layout's arrays were not reused");
     // Without buffer reuse the scratch keeps nothing.
     s.set_reuse_top_level_buffers(false);
     s.set_vertices(id, &m.positions).unwrap();

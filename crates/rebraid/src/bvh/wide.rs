@@ -169,7 +169,21 @@ impl<const W: usize> WideBvh<W> {
     /// holds more than [`WIDE_MAX_LEAF_COUNT`] primitives or the tree more
     /// than [`WIDE_MAX_PRIMITIVES`].
     pub fn from_bvh(bvh: &Bvh) -> Result<Self, Error> {
+        let mut out = Self::default();
+        out.collapse_from(bvh)?;
+        Ok(out)
+    }
+
+    /// [`WideBvh::from_bvh`] into this tree's arrays, reusing their memory
+    /// (a top level rebuilt every frame collapses into the previous frame's
+    /// arrays instead of fresh pages). On error the tree is left empty.
+    pub fn collapse_from(&mut self, bvh: &Bvh) -> Result<(), Error> {
         let () = Self::WIDTH_OK;
+        self.nodes.clear();
+        self.binary_of.clear();
+        self.slot_binary.clear();
+        self.root_bounds = Aabb::default();
+        self.prim_count = 0;
         let prim_count = bvh.prim_indices.len();
         if prim_count > WIDE_MAX_PRIMITIVES {
             return Err(Error::TooManyPrimitives(prim_count));
@@ -182,13 +196,15 @@ impl<const W: usize> WideBvh<W> {
             )));
         }
         let Some(root) = bvh.nodes.first() else {
-            return Ok(Self::default());
+            return Ok(());
         };
         let bin = &bvh.nodes;
-        let mut nodes = Vec::with_capacity(bin.len() / (W - 1) + 1);
+        let (nodes, binary_of, slot_binary) =
+            (&mut self.nodes, &mut self.binary_of, &mut self.slot_binary);
+        nodes.reserve(bin.len() / (W - 1) + 1);
         nodes.push(WideNode::EMPTY);
-        let mut binary_of = vec![0u32];
-        let mut slot_binary = vec![[WIDE_EMPTY; W]];
+        binary_of.push(0);
+        slot_binary.push([WIDE_EMPTY; W]);
         // (binary node to collapse, wide node to fill)
         let mut work = vec![(0usize, 0usize)];
         // Candidate children with the area by which the next one to expand
@@ -243,13 +259,9 @@ impl<const W: usize> WideBvh<W> {
                 slot_binary[w][slot] = k as u32;
             }
         }
-        Ok(Self {
-            nodes,
-            binary_of,
-            slot_binary,
-            root_bounds: root.bounds(),
-            prim_count,
-        })
+        self.root_bounds = root.bounds();
+        self.prim_count = prim_count;
+        Ok(())
     }
 
     #[inline]

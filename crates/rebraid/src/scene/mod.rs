@@ -670,11 +670,11 @@ impl Scene {
             // Should this commit fail from here on, queries hit nothing
             // until the next successful commit.
             let (mut objects_buf, mut instances_buf) = (Vec::new(), Vec::new());
-            if let Accel::TopLevel(old) = std::mem::take(&mut self.accel)
+            if let Accel::TopLevel(mut old) = std::mem::take(&mut self.accel)
                 && !self.no_buffer_reuse
             {
+                self.top_scratch.recycle_layout(old.take_layout_buffers());
                 self.top_scratch.recycle(old.tree.nodes, old.refs);
-                self.top_scratch.recycle_blocks(old.blocks);
                 objects_buf = old.objects;
                 instances_buf = old.instances;
                 objects_buf.clear();
@@ -1050,7 +1050,7 @@ impl Scene {
             &mut self.top_scratch
         };
         let built = build_top_level_with(&refs, src, &params, buffers);
-        let block_buffer = buffers.take_blocks();
+        let layout_buffers = buffers.take_layout();
         if !self.no_buffer_reuse {
             self.top_initial = refs;
         }
@@ -1085,7 +1085,7 @@ impl Scene {
                 graft_share_per_prim: params.graft_share_per_prim,
                 graft_whole,
             },
-            block_buffer,
+            layout_buffers,
         )
         .with_baked(baked)?
         .with_merged(merged)?;

@@ -59,11 +59,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use glam::Vec3A;
 use rayon::prelude::*;
 
-use super::{InstanceXf, ObjectBvh, TopRef};
+use super::{InstanceXf, LayoutBuffers, ObjectBvh, TopRef};
 use crate::bvh::binning::{
     BinBox, BinMapping, BinRange, Bins, MAX_BINS, SplitCandidate, with_bins,
 };
-use crate::bvh::triangle4::Triangle4;
 use crate::bvh::wide::WIDE_EMPTY;
 use crate::bvh::{Bvh, BvhNode, MEDIAN_FROM_DEPTH, compact_slots, split_slots};
 use crate::{Aabb, Error, INVALID_ID};
@@ -510,9 +509,9 @@ pub struct TopLevelScratch {
     slots: Vec<BvhNode>,
     nodes: Vec<BvhNode>,
     out_refs: Vec<TopRef>,
-    /// The previous top level's copied leaf blocks
-    /// ([`super::TopLevelAccel::blocks`]), for the next one's.
-    blocks: Vec<Triangle4>,
+    /// The previous top level's layout arrays (its collapsed nodes,
+    /// entries, copied leaf blocks), for the next one's.
+    layout: LayoutBuffers,
 }
 
 impl TopLevelScratch {
@@ -527,19 +526,16 @@ impl TopLevelScratch {
         }
     }
 
-    /// Hand back a previous top level's copied leaf blocks.
-    pub fn recycle_blocks(&mut self, blocks: Vec<Triangle4>) {
-        if blocks.capacity() > self.blocks.capacity() {
-            self.blocks = blocks;
-        }
+    /// Hand back a previous top level's layout arrays
+    /// ([`super::TopLevelAccel::take_layout_buffers`]).
+    pub fn recycle_layout(&mut self, layout: LayoutBuffers) {
+        self.layout = layout;
     }
 
-    /// The block buffer for the next top level (empty; the scratch keeps
-    /// none until one is handed back).
-    pub fn take_blocks(&mut self) -> Vec<Triangle4> {
-        let mut b = std::mem::take(&mut self.blocks);
-        b.clear();
-        b
+    /// The layout arrays for the next top level (the scratch keeps none
+    /// until some are handed back).
+    pub fn take_layout(&mut self) -> LayoutBuffers {
+        std::mem::take(&mut self.layout)
     }
 
     /// Bytes held by the buffers.
@@ -548,7 +544,7 @@ impl TopLevelScratch {
         (self.refs.capacity() + self.scratch.capacity()) * size_of::<BuildRef>()
             + (self.slots.capacity() + self.nodes.capacity()) * size_of::<BvhNode>()
             + self.out_refs.capacity() * size_of::<TopRef>()
-            + self.blocks.capacity() * size_of::<Triangle4>()
+            + self.layout.bytes()
     }
 
     /// Free every buffer.

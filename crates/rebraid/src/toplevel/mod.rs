@@ -391,6 +391,60 @@ pub struct MergedSlot {
     pub origins: Arc<[(u32, u32)]>,
 }
 
+/// The arrays of a previous top level's layout, handed back for the next
+/// one's ([`TopLevelAccel::take_layout_buffers`], kept between commits by
+/// [`builder::TopLevelScratch`]).
+///
+/// Why: a scene whose top level is rebuilt every frame (one object moving
+/// through a re-braided scene) would otherwise lay it out in fresh memory
+/// each time, every 4 KiB page of it a fault the kernel answers by zeroing
+/// the page: 9,200 faults per frame of `rebraid animate library --scale 2`
+/// (about 37 MB: the copied leaf blocks, the collapsed nodes, the entries),
+/// before these arrays were reused (docs/performance.md, session 35).
+#[derive(Clone, Debug, Default)]
+pub struct LayoutBuffers {
+    wide: WideBvh<8>,
+    entry_refs: Vec<TopRef>,
+    entries: Vec<RefEntry>,
+    grafted: Vec<(RefEntry, Aabb)>,
+    blocks: Vec<Triangle4>,
+    block_entry: Vec<u32>,
+    block_placement: Vec<(u32, u32)>,
+    block_normal_scale: Vec<f32>,
+}
+
+impl LayoutBuffers {
+    /// Bytes the buffers hold (their capacities).
+    pub fn bytes(&self) -> usize {
+        fn cap<T>(v: &Vec<T>) -> usize {
+            v.capacity() * std::mem::size_of::<T>()
+        }
+        cap(&self.wide.nodes)
+            + cap(&self.wide.binary_of)
+            + cap(&self.wide.slot_binary)
+            + cap(&self.entry_refs)
+            + cap(&self.entries)
+            + cap(&self.grafted)
+            + cap(&self.blocks)
+            + cap(&self.block_entry)
+            + cap(&self.block_placement)
+            + cap(&self.block_normal_scale)
+    }
+}
+
+/// Empty `v` and make room for `len` items. A buffer handed back from an
+/// earlier top level that is too short grows with 1/16 to spare, so that a
+/// scene whose layout grows by a few items per frame does not move to
+/// fresh memory every frame (the library's copied blocks vary by +-0.3%
+/// from frame to frame of `rebraid animate`); a first allocation is exact.
+fn clear_for<T>(v: &mut Vec<T>, len: usize) {
+    v.clear();
+    if v.capacity() < len {
+        let spare = if v.capacity() > 0 { len / 16 } else { 0 };
+        v.reserve_exact(len + spare);
+    }
+}
+
 /// How a committed top level is laid out and traversed, beyond the build.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TopLevelLayout {
@@ -470,7 +524,7 @@ fn inline_leaf_blocks(
     objects: &[Option<Arc<ObjectBvh>>],
     instances: &[InstanceXf],
     instanced: bool,
-    mut blocks: Vec<Triangle4>,
+    (mut blocks, mut block_entry): (Vec<Triangle4>, Vec<u32>),
 ) -> (Vec<Triangle4>, Vec<u32>) {
     let block_base = entries.len();
     // The object leaf a slot enters, as (entry, object blocks, the
@@ -520,10 +574,9 @@ fn inline_leaf_blocks(
         }
     }
     let total = total - block_base;
-    blocks.clear();
-    blocks.reserve_exact(total);
+    clear_for(&mut blocks, total);
     crate::huge_pages::advise(&mut blocks);
-    let mut block_entry = Vec::with_capacity(total);
+    clear_for(&mut block_entry, total);
     // Pieces of about `BLOCK_COPY_CHUNK` blocks each, whole leaves, with
     // their destinations: the same pieces at any thread count.
     let mut pieces = Vec::new();
@@ -746,19 +799,21 @@ fn split_entry(
 /// slot often enough that the copy pays for itself after about 100,000 of
 /// them (see [`builder::RebraidParams::graft_share_per_prim`]).
 ///
-/// Returns, for each new node (they are appended, in order), the entry it
-/// replaced and that entry's slot box: what `order_top_level` needs to
+/// Appends to `grafted`, for each new node (they are appended, in order),
+/// the entry it replaced and that entry's slot box: what `order_top_level` needs to
 /// leave the copies in the object's own occlusion order.
 fn graft_entries(
     wide: &mut WideBvh<8>,
-    entry_refs: &mut Vec<TopRef>,
-    entries: &mut Vec<RefEntry>,
+    (entry_refs, entries, grafted): (
+        &mut Vec<TopRef>,
+        &mut Vec<RefEntry>,
+        &mut Vec<(RefEntry, Aabb)>,
+    ),
     objects: &[Option<Arc<ObjectBvh>>],
     instances: &[InstanceXf],
     max_prims: u32,
     (budget, share_per_prim, cap, whole): (u64, f32, u64, Option<u32>),
-) -> Vec<(RefEntry, Aabb)> {
-    let mut grafted = Vec::new();
+) {
     // Depth of every node (the root is 1).
     let mut depth = vec![0u32; wide.nodes.len()];
     let mut stack = vec![(0u32, 1u32)];
@@ -858,7 +913,6 @@ fn graft_entries(
             wide.slot_binary[n][s] = WIDE_EMPTY;
         }
     }
-    grafted
 }
 
 /// Occlusion statistics of entry `r` seen from a top-level slot of box
@@ -1713,12 +1767,27 @@ impl TopLevelAccel {
         instances: Vec<InstanceXf>,
         build_stats: TopLevelBuildStats,
         layout: TopLevelLayout,
-        block_buffer: Vec<Triangle4>,
+        buffers: LayoutBuffers,
     ) -> Self {
-        let mut wide = WideBvh::<8>::from_bvh(&tree).ok().filter(|w| !w.is_empty());
-        let mut entry_refs = refs.clone();
-        let mut entries: Vec<RefEntry> = refs
-            .par_iter()
+        let LayoutBuffers {
+            wide: mut wide_buffer,
+            mut entry_refs,
+            mut entries,
+            mut grafted,
+            blocks: block_buffer,
+            block_entry: block_entry_buffer,
+            block_placement,
+            block_normal_scale,
+        } = buffers;
+        let mut wide = wide_buffer
+            .collapse_from(&tree)
+            .ok()
+            .map(|()| wide_buffer)
+            .filter(|w| !w.is_empty());
+        clear_for(&mut entry_refs, refs.len());
+        entry_refs.extend_from_slice(&refs);
+        clear_for(&mut entries, refs.len());
+        refs.par_iter()
             .with_min_len(4096)
             .map(|r| RefEntry {
                 object: r.object,
@@ -1731,9 +1800,9 @@ impl TopLevelAccel {
                     .unwrap_or(WIDE_EMPTY),
                 node: r.node,
             })
-            .collect();
+            .collect_into_vec(&mut entries);
         let direct = direct_slot(&refs, &objects);
-        let mut grafted = Vec::new();
+        grafted.clear();
         if let Some(w) = &mut wide {
             // A direct top level is never walked: no pulls, grafts or
             // copies to make for it.
@@ -1747,10 +1816,9 @@ impl TopLevelAccel {
             {
                 // Primitives of the distinct objects, each counted once.
                 let prims: u64 = objects.iter().flatten().map(|o| o.mesh.len() as u64).sum();
-                grafted = graft_entries(
+                graft_entries(
                     w,
-                    &mut entry_refs,
-                    &mut entries,
+                    (&mut entry_refs, &mut entries, &mut grafted),
                     &objects,
                     &instances,
                     layout.graft_max_prims,
@@ -1774,7 +1842,7 @@ impl TopLevelAccel {
                 &objects,
                 &instances,
                 layout.inline_instanced_leaves,
-                block_buffer,
+                (block_buffer, block_entry_buffer),
             ),
             _ => Default::default(),
         };
@@ -1790,8 +1858,8 @@ impl TopLevelAccel {
             entries,
             blocks,
             block_entry,
-            block_placement: Vec::new(),
-            block_normal_scale: Vec::new(),
+            block_placement,
+            block_normal_scale,
             block_base,
             baked: Vec::new(),
             grafted,
@@ -1809,20 +1877,44 @@ impl TopLevelAccel {
         // once (an instanced entry's scale is a determinant).
         type Placed = ((u32, u32), f32);
         let mut last: Option<(u32, Placed)> = None;
-        let (placement, scale) = self
-            .block_entry
-            .iter()
-            .map(|&ri| match last {
+        // Into the arrays' own memory (handed back from an earlier top
+        // level, see `LayoutBuffers`).
+        let (mut placement, mut scale) = (
+            std::mem::take(&mut self.block_placement),
+            std::mem::take(&mut self.block_normal_scale),
+        );
+        clear_for(&mut placement, self.block_entry.len());
+        clear_for(&mut scale, self.block_entry.len());
+        for &ri in &self.block_entry {
+            let (p, n) = match last {
                 Some((r, v)) if r == ri => v,
                 _ => {
                     let v = (self.entry_placement(ri), self.block_entry_normal_scale(ri));
                     last = Some((ri, v));
                     v
                 }
-            })
-            .unzip();
+            };
+            placement.push(p);
+            scale.push(n);
+        }
         self.block_placement = placement;
         self.block_normal_scale = scale;
+    }
+
+    /// Take the arrays of this top level's layout for the next top level's
+    /// (see [`LayoutBuffers`]), leaving this one empty of them: it must
+    /// not be traced afterwards.
+    pub fn take_layout_buffers(&mut self) -> LayoutBuffers {
+        LayoutBuffers {
+            wide: self.wide.take().unwrap_or_default(),
+            entry_refs: std::mem::take(&mut self.entry_refs),
+            entries: std::mem::take(&mut self.entries),
+            grafted: std::mem::take(&mut self.grafted),
+            blocks: std::mem::take(&mut self.blocks),
+            block_entry: std::mem::take(&mut self.block_entry),
+            block_placement: std::mem::take(&mut self.block_placement),
+            block_normal_scale: std::mem::take(&mut self.block_normal_scale),
+        }
     }
 
     /// The (object, instance) a hit on a block copied for entry `ri`
