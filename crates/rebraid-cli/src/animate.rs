@@ -5,9 +5,11 @@
 //! (the "initial build", not a frame); then every frame poses the object at
 //! its time (interpolation), commits (the moved object's BVH is rebuilt or
 //! refitted by `--policy`, the top level rebuilt; flat rebuilds everything),
-//! and traces: a fixed set of primary rays (one per pixel centre) for
-//! Mrays/s, and with `-o` a path-traced PNG per frame. The summary gives the
-//! medians over the frames.
+//! and traces: a fixed set of primary rays (one per pixel centre), and
+//! shadow and diffuse rays made from the frame's primary hits (as `bench`
+//! makes them, `crate::raysets`) for Mrays/s per ray set, and with `-o` a
+//! path-traced PNG per frame. The summary gives the medians over the
+//! frames.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -21,6 +23,7 @@ use serde::Serialize;
 use crate::bench::median;
 use crate::camera::{Camera, UpAxis};
 use crate::loaders::LoadOptions;
+use crate::raysets::RaySets;
 use crate::render::{self, RenderSettings};
 use crate::scene_input::SceneInput;
 
@@ -111,12 +114,26 @@ pub struct FrameRow {
     pub update_ms: f64,
     pub objects_rebuilt: usize,
     pub objects_refitted: usize,
+    /// Refs of the top level (of a split scene, the top level over the
+    /// placements that did not move).
     pub top_refs: usize,
+    /// A split scene's top level over the placements that moved (see
+    /// `RebraidParams::moving_hold_commits`): its refs, 0 when not split.
+    pub moving_refs: usize,
+    /// The top level over the placements that did not move was kept from
+    /// an earlier frame.
+    pub fixed_kept: bool,
     /// Path-traced frame (with `-o`).
     pub render_ms: Option<f64>,
     pub primary_rays: usize,
     pub primary_hits: usize,
+    /// Primary rays.
     pub mrays_per_s: f64,
+    /// Shadow rays (occlusion) towards the point light from the frame's
+    /// primary hits.
+    pub shadow_mrays_per_s: f64,
+    /// Diffuse rays (closest hit) from the frame's primary hits.
+    pub diffuse_mrays_per_s: f64,
 }
 
 /// Medians of one mode over its frames.
@@ -130,6 +147,8 @@ pub struct ModeSummary {
     pub median_object_ms: f64,
     pub median_top_ms: f64,
     pub median_mrays_per_s: f64,
+    pub median_shadow_mrays_per_s: f64,
+    pub median_diffuse_mrays_per_s: f64,
     pub median_render_ms: Option<f64>,
 }
 
@@ -233,7 +252,7 @@ pub fn run(cfg: &AnimateConfig) -> anyhow::Result<(Vec<FrameRow>, Vec<ModeSummar
             initial.top_build_ms
         );
         println!(
-            "  {:>5} {:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>10} {:>8}",
+            "  {:>5} {:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>8} {:>10} {:>8} {:>7} {:>5}",
             "frame",
             "t",
             "interp",
@@ -242,9 +261,13 @@ pub fn run(cfg: &AnimateConfig) -> anyhow::Result<(Vec<FrameRow>, Vec<ModeSummar
             "top",
             "commit",
             "update",
-            "Mrays/s",
+            "primary",
+            "shadow",
+            "diffuse",
             "render ms",
-            "refs"
+            "refs",
+            "moving",
+            "kept"
         );
         let mut mode_rows: Vec<FrameRow> = Vec::with_capacity(cfg.frames);
         for f in 0..cfg.frames {
@@ -262,6 +285,18 @@ pub fn run(cfg: &AnimateConfig) -> anyhow::Result<(Vec<FrameRow>, Vec<ModeSummar
             let t1 = Instant::now();
             scene.intersect_batch(&rays, &mut hits);
             let trace_s = t1.elapsed().as_secs_f64();
+            let sets = RaySets::generate(&camera, cfg.width, cfg.height, &bounds, up, |r, h| {
+                scene.intersect_batch(r, h)
+            });
+            let mrays = |n: usize, s: f64| n as f64 / s.max(1e-9) / 1e6;
+            let t2 = Instant::now();
+            let mut occluded = vec![false; sets.shadow.len()];
+            scene.occluded_batch(&sets.shadow, &mut occluded);
+            let shadow_mrays = mrays(sets.shadow.len(), t2.elapsed().as_secs_f64());
+            let t3 = Instant::now();
+            let mut diffuse_hits = vec![None; sets.diffuse.len()];
+            scene.intersect_batch(&sets.diffuse, &mut diffuse_hits);
+            let diffuse_mrays = mrays(sets.diffuse.len(), t3.elapsed().as_secs_f64());
             let render_ms = match &dir {
                 Some(d) => {
                     let t2 = Instant::now();
@@ -285,13 +320,17 @@ pub fn run(cfg: &AnimateConfig) -> anyhow::Result<(Vec<FrameRow>, Vec<ModeSummar
                 objects_rebuilt: rep.objects_rebuilt.len(),
                 objects_refitted: rep.objects_refitted.len(),
                 top_refs: rep.top.as_ref().map_or(0, |s| s.refs_final),
+                moving_refs: rep.top_moving.as_ref().map_or(0, |s| s.refs_final),
+                fixed_kept: rep.fixed_top_reused,
                 render_ms,
                 primary_rays: rays.len(),
                 primary_hits: hits.iter().flatten().count(),
-                mrays_per_s: rays.len() as f64 / trace_s.max(1e-9) / 1e6,
+                mrays_per_s: mrays(rays.len(), trace_s),
+                shadow_mrays_per_s: shadow_mrays,
+                diffuse_mrays_per_s: diffuse_mrays,
             };
             println!(
-                "  {:>5} {:>6.3} {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>8.2} {:>10} {:>8}",
+                "  {:>5} {:>6.3} {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>9.2} {:>8.2} {:>8.2} {:>8.2} {:>10} {:>8} {:>7} {:>5}",
                 row.frame,
                 row.time,
                 row.interp_ms,
@@ -301,8 +340,12 @@ pub fn run(cfg: &AnimateConfig) -> anyhow::Result<(Vec<FrameRow>, Vec<ModeSummar
                 row.commit_ms,
                 row.update_ms,
                 row.mrays_per_s,
+                row.shadow_mrays_per_s,
+                row.diffuse_mrays_per_s,
                 row.render_ms.map_or("-".to_string(), |m| format!("{m:.0}")),
-                row.top_refs
+                row.top_refs,
+                row.moving_refs,
+                if row.fixed_kept { "yes" } else { "-" }
             );
             mode_rows.push(row);
         }
@@ -316,29 +359,41 @@ pub fn run(cfg: &AnimateConfig) -> anyhow::Result<(Vec<FrameRow>, Vec<ModeSummar
             median_object_ms: med(&|r| r.rebuild_ms + r.refit_ms),
             median_top_ms: med(&|r| r.top_ms),
             median_mrays_per_s: med(&|r| r.mrays_per_s),
+            median_shadow_mrays_per_s: med(&|r| r.shadow_mrays_per_s),
+            median_diffuse_mrays_per_s: med(&|r| r.diffuse_mrays_per_s),
             median_render_ms: dir.as_ref().map(|_| med(&|r| r.render_ms.unwrap_or(0.0))),
         });
         rows.extend(mode_rows);
     }
 
     println!(
-        "\nsummary (medians over {} frames; update = interpolation + commit)",
+        "\nsummary (medians over {} frames; update = interpolation + commit; Mrays/s per ray set)",
         cfg.frames
     );
     println!(
-        "  {:<10} {:>12} {:>10} {:>10} {:>10} {:>10} {:>9}",
-        "mode", "initial ms", "update ms", "commit ms", "object ms", "top ms", "Mrays/s"
+        "  {:<10} {:>12} {:>10} {:>10} {:>10} {:>10} {:>9} {:>9} {:>9}",
+        "mode",
+        "initial ms",
+        "update ms",
+        "commit ms",
+        "object ms",
+        "top ms",
+        "primary",
+        "shadow",
+        "diffuse"
     );
     for s in &summaries {
         println!(
-            "  {:<10} {:>12.1} {:>10.2} {:>10.2} {:>10.2} {:>10.2} {:>9.2}",
+            "  {:<10} {:>12.1} {:>10.2} {:>10.2} {:>10.2} {:>10.2} {:>9.2} {:>9.2} {:>9.2}",
             s.mode,
             s.initial_build_ms,
             s.median_update_ms,
             s.median_commit_ms,
             s.median_object_ms,
             s.median_top_ms,
-            s.median_mrays_per_s
+            s.median_mrays_per_s,
+            s.median_shadow_mrays_per_s,
+            s.median_diffuse_mrays_per_s
         );
     }
     if let Some(d) = &cfg.out_dir {

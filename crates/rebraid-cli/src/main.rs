@@ -131,6 +131,11 @@ struct SceneOpts {
     /// scene is walked alone, without a top level, whatever this says.
     #[arg(long)]
     graft_merged_max_prims: Option<u32>,
+    /// Re-braiding: commits a moved placement is traced from a second top
+    /// level, built at every commit, while the top level over the others
+    /// is kept (0: one top level over everything, rebuilt at every commit).
+    #[arg(long)]
+    moving_hold_commits: Option<u32>,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -206,6 +211,9 @@ impl SceneOpts {
         if let Some(g) = self.graft_merged_max_prims {
             r.graft_merged_max_prims = g;
         }
+        if let Some(h) = self.moving_hold_commits {
+            r.moving_hold_commits = h;
+        }
         p.object_build.check()?;
         r.check()?;
         Ok(p)
@@ -256,6 +264,10 @@ impl SceneOpts {
             (
                 "graft-share-per-prim",
                 self.graft_share_per_prim.map(|x| x.to_string()),
+            ),
+            (
+                "moving-hold-commits",
+                self.moving_hold_commits.map(|x| x.to_string()),
             ),
             (
                 "budget-overlap-unit",

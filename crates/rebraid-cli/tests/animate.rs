@@ -1,5 +1,5 @@
 //! `rebraid animate` end to end: a tiny library with the default robot,
-//! three frames in every mode, PNGs and JSON written.
+//! three frames in every mode, PNGs and JSON written, every ray set traced.
 
 use std::process::Command;
 
@@ -46,6 +46,17 @@ fn animate_writes_frames_and_json() {
         assert_eq!(r["mode"], modes[k / 3]);
         assert_eq!(r["frame"], (k % 3) as u64);
         assert!(r["mrays_per_s"].as_f64().unwrap() > 0.0);
+        assert!(r["shadow_mrays_per_s"].as_f64().unwrap() > 0.0);
+        assert!(r["diffuse_mrays_per_s"].as_f64().unwrap() > 0.0);
+        if r["mode"] == "rebraided" {
+            // The robot moves every frame: it is traced from a top level of
+            // its own, and the one over the library, built at the first
+            // frame, is kept.
+            assert!(r["moving_refs"].as_u64().unwrap() >= 1, "{r}");
+            assert_eq!(r["fixed_kept"], r["frame"] != 0, "{r}");
+        } else {
+            assert_eq!(r["moving_refs"], 0, "{r}");
+        }
         assert!(r["commit_ms"].as_f64().unwrap() >= 0.0);
         assert_eq!(r["primary_rays"], 64 * 36);
         assert!(r["render_ms"].as_f64().is_some());

@@ -15,8 +15,8 @@ use rebraid::procedural_dynamic::{DynamicKind, DynamicObject, DynamicParams};
 use rebraid::scene::Accel;
 use rebraid::triangle::{WatertightRay, intersect_triangle, is_degenerate};
 use rebraid::{
-    Aabb, AccelMode, CommitReport, Hit, INVALID_ID, Ray, Scene, SceneParams, TriangleMesh,
-    UpdatePolicy,
+    Aabb, AccelMode, CommitReport, Hit, INVALID_ID, Ray, RebraidParams, Scene, SceneParams,
+    TriangleMesh, UpdatePolicy,
 };
 
 const LO: Vec3 = Vec3::new(0.0, 0.0, 0.0);
@@ -524,8 +524,14 @@ fn refit_is_in_place_unless_the_old_structure_is_shared() {
     s.add_object(wavy_grid(10, 5.0, 0.0)).unwrap();
     s.set_update_policy(id, UpdatePolicy::Refit).unwrap();
     s.commit().unwrap();
+    // Once it moves, the object is traced from the moving part of a split
+    // scene, and the kept part holds no reference to it.
     let ptr = |s: &Scene| match s.accel() {
         Accel::TopLevel(t) => Arc::as_ptr(t.objects[id as usize].as_ref().unwrap()),
+        Accel::Split(sp) => {
+            assert!(sp.fixed.objects[id as usize].is_none());
+            Arc::as_ptr(sp.moving.objects[id as usize].as_ref().unwrap())
+        }
         _ => panic!("two-level"),
     };
     let p0 = ptr(&s);
@@ -539,8 +545,12 @@ fn refit_is_in_place_unless_the_old_structure_is_shared() {
     s.commit().unwrap();
     assert_ne!(ptr(&s), p0, "copied on write");
     let ray = Ray::new(Vec3::new(1.0, 10.0, 5.0), Vec3::NEG_Y, 0.0, f32::INFINITY).unwrap();
-    let Accel::TopLevel(old) = old else { panic!() };
-    let (h_old, h_new) = (old.intersect(&ray).unwrap(), s.intersect(&ray).unwrap());
+    let h_old = match old {
+        Accel::TopLevel(t) => t.intersect(&ray),
+        Accel::Split(sp) => sp.intersect(&ray),
+        _ => panic!("two-level"),
+    };
+    let (h_old, h_new) = (h_old.unwrap(), s.intersect(&ray).unwrap());
     assert!(
         (h_old.t - h_new.t - 1.0).abs() < 1e-3,
         "{h_old:?} {h_new:?}"
@@ -653,8 +663,13 @@ fn animated_transform_interpolates() {
 /// the next top level instead of allocating (and paging in) others.
 #[test]
 fn layout_arrays_reuse_the_previous_commits_buffers() {
+    // One top level over everything, rebuilt at each commit.
     let mut s = Scene::with_params(SceneParams {
         mode: AccelMode::Rebraided,
+        rebraid: RebraidParams {
+            moving_hold_commits: 0,
+            ..Default::default()
+        },
         ..Default::default()
     });
     let m = wavy_grid(40, 0.0, 0.0);

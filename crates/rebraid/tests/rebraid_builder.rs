@@ -251,6 +251,7 @@ fn trees_do_not_depend_on_the_thread_count() {
                     out.push((t.tree.clone(), t.refs.clone(), objects, sah));
                 }
                 Accel::Flat(f) => out.push((f.bvh.bvh.clone(), Vec::new(), Vec::new(), sah)),
+                Accel::Split(_) => panic!("nothing moved: one top level"),
                 Accel::Empty => panic!("empty"),
             }
         }
@@ -469,6 +470,7 @@ proptest! {
                 }
             }
             Accel::Flat(_) => prop_assert!(false, "flat accel in rebraided mode"),
+            Accel::Split(_) => prop_assert!(false, "split accel before any move"),
         }
     }
 }

@@ -70,6 +70,17 @@ fn param_sets() -> Vec<(&'static str, SceneParams)> {
                 p.kernel = Some(Kernel::Scalar);
             }),
         ),
+        (
+            "one top level: moved placements not split off",
+            with(&|p| p.rebraid.moving_hold_commits = 0),
+        ),
+        (
+            "moved placements split off for one commit, merge placed",
+            with(&|p| {
+                p.rebraid.moving_hold_commits = 1;
+                p.merge_placed = true;
+            }),
+        ),
     ]
 }
 

@@ -650,6 +650,13 @@ fn merged_objects_are_rebuilt_exactly_when_members_change() {
                     assert_eq!(t.merged.is_some(), !m.is_empty(), "{what}");
                     check_top(t, model, &what);
                 }
+                // Its members never moved: the merged BVH is in the part
+                // kept.
+                Accel::Split(sp) => {
+                    assert_eq!(sp.fixed.merged.is_some(), !m.is_empty(), "{what}");
+                    assert!(sp.moving.merged.is_none(), "{what}");
+                    check_tops(&[&sp.fixed, &sp.moving], model, &what);
+                }
                 _ => panic!("{what}: no top level"),
             }
             let world = model.world();
@@ -835,7 +842,10 @@ fn merged_objects_are_rebuilt_exactly_when_members_change() {
 fn a_scene_of_one_object_is_walked_directly_through_its_updates() {
     for mode in [AccelMode::TwoLevel, AccelMode::Rebraided] {
         let mut r = rng(980);
-        let mut scene = Scene::with_params(params(mode));
+        // One top level over everything: a moved object is not split off.
+        let mut p = params(mode);
+        p.rebraid.moving_hold_commits = 0;
+        let mut scene = Scene::with_params(p);
         let mut model = Model::default();
         let obj = model.add_object(&mut scene, soup(&mut r, 900, SCENE_LO, SCENE_HI, 1.2), true);
         let proto = model.add_object(&mut scene, soup(&mut r, 60, SCENE_LO, SCENE_HI, 1.2), false);
@@ -880,5 +890,135 @@ fn a_scene_of_one_object_is_walked_directly_through_its_updates() {
         model.objects.remove(&other);
         scene.commit().unwrap();
         check(&scene, &model, Some(obj), 6, "alone at last");
+    }
+}
+
+/// A re-braided scene traces the placements that moved within
+/// `RebraidParams::moving_hold_commits` commits from a second top level
+/// (`Accel::Split`) and keeps the top level over the others while the
+/// moving set stays the same: kept (the same arrays) through repeated
+/// moves of the same placements, rebuilt when another placement starts
+/// moving, when the scene's contents change, and when a placement stops
+/// moving for the hold; one top level again once nothing moved for the
+/// hold. Answers against the brute force at every commit (single and
+/// batch queries).
+#[test]
+fn moving_placements_are_traced_apart_and_the_rest_kept() {
+    let mut r = rng(4242);
+    let g = Gen {
+        clustered: 4,
+        scattered: 1,
+        grids: 1,
+        tris: 80,
+        prototypes: 2,
+        instances: 6,
+        mirror: true,
+    };
+    let mut model = random_model(&mut r, &g);
+    let mut p = params(AccelMode::Rebraided);
+    p.rebraid.moving_hold_commits = 3;
+    let mut scene = model.to_scene(p);
+    let placed: Vec<u32> = model
+        .objects
+        .iter()
+        .filter(|(_, (m, placed))| *placed && !m.is_empty())
+        .map(|(&id, _)| id)
+        .collect();
+    let (a, inst) = (placed[0], *model.instances.keys().next().unwrap());
+    scene.set_update_policy(a, UpdatePolicy::Refit).unwrap();
+    let fixed_nodes = |s: &Scene| match s.accel() {
+        Accel::Split(sp) => sp.fixed.tree.nodes.as_ptr(),
+        _ => panic!("a split scene"),
+    };
+    let mut seed = 7000;
+    let mut commit = |scene: &mut Scene, model: &Model, what: &str| {
+        let rep = scene.commit().unwrap();
+        seed += 1;
+        check_commit(scene, model, 300, seed, what);
+        rep
+    };
+    let rep = commit(&mut scene, &model, "first");
+    assert!(matches!(scene.accel(), Accel::TopLevel(_)));
+    assert!(!rep.fixed_top_reused && rep.top_moving.is_none());
+
+    // Object a moves: split off, the rest built once.
+    let mut ra = rng(4343);
+    let mut move_a = |scene: &mut Scene, model: &mut Model| {
+        let v = jitter(&mut ra, &model.objects[&a].0);
+        scene.set_vertices(a, &v).unwrap();
+        model.objects.get_mut(&a).unwrap().0.positions = v;
+    };
+    move_a(&mut scene, &mut model);
+    let rep = commit(&mut scene, &model, "a moved");
+    assert!(!rep.fixed_top_reused);
+    assert_eq!(rep.objects_refitted, [a]);
+    let instances_of_a = model.instances.values().filter(|(o, _)| *o == a).count();
+    assert_eq!(rep.moving_placements, 1 + instances_of_a);
+    let kept = fixed_nodes(&scene);
+    // Again: the fixed part is kept as it was.
+    for k in 0..3 {
+        move_a(&mut scene, &mut model);
+        let rep = commit(&mut scene, &model, &format!("a moved again ({k})"));
+        assert!(rep.fixed_top_reused, "{k}");
+        assert_eq!(fixed_nodes(&scene), kept, "{k}");
+    }
+
+    // An instance starts moving: the fixed part is rebuilt without it.
+    let xf = random_transform(&mut r, SCENE_LO, SCENE_HI, true);
+    scene.set_instance_transform(inst, xf).unwrap();
+    model.instances.get_mut(&inst).unwrap().1 = xf;
+    move_a(&mut scene, &mut model);
+    let rep = commit(&mut scene, &model, "instance moved");
+    assert!(!rep.fixed_top_reused);
+    move_a(&mut scene, &mut model);
+    let rep = commit(
+        &mut scene,
+        &model,
+        "a moved, the instance still in the hold",
+    );
+    assert!(rep.fixed_top_reused);
+
+    // A new object (the scene's contents): rebuilt.
+    let b = model.add_object(&mut scene, soup(&mut r, 40, SCENE_LO, SCENE_HI, 1.0), true);
+    move_a(&mut scene, &mut model);
+    let rep = commit(&mut scene, &model, "object added");
+    assert!(!rep.fixed_top_reused);
+    assert!(matches!(scene.accel(), Accel::Split(_)));
+
+    // Nothing moves: the instance leaves the hold first (rebuilt), then a;
+    // then one top level over everything.
+    let mut shapes = Vec::new();
+    for k in 0..4 {
+        let rep = commit(&mut scene, &model, &format!("still ({k})"));
+        shapes.push((
+            matches!(scene.accel(), Accel::Split(_)),
+            rep.fixed_top_reused,
+        ));
+    }
+    assert_eq!(
+        shapes,
+        [(true, false), (true, true), (false, false), (false, false)],
+        "(split, kept) per still commit"
+    );
+    let _ = b;
+
+    // Splitting off: the answers of one top level (moves mirrored in a
+    // scene with the hold at 0).
+    let mut p0 = params(AccelMode::Rebraided);
+    p0.rebraid.moving_hold_commits = 0;
+    let mut one = model.to_scene(p0);
+    one.commit().unwrap();
+    move_a(&mut scene, &mut model);
+    let v = model.objects[&a].0.positions.clone();
+    one.set_vertices(a, &v).unwrap();
+    commit(&mut scene, &model, "a moves once more");
+    one.commit().unwrap();
+    assert!(matches!(one.accel(), Accel::TopLevel(_)));
+    let world = model.world();
+    let rays = random_rays(&mut rng(77), &world, 400, SCENE_LO, SCENE_HI);
+    for ray in &rays {
+        let (h1, h2) = (scene.intersect(ray), one.intersect(ray));
+        assert_eq!(h1.map(|h| h.t), h2.map(|h| h.t), "{ray:?}");
+        assert_eq!(scene.occluded(ray), one.occluded(ray), "{ray:?}");
     }
 }

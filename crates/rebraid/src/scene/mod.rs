@@ -21,8 +21,17 @@
 //!
 //! With [`SceneParams::merge_placed`] the two-level modes trace the objects
 //! placed directly from one BVH over all their triangles (see there).
+//!
+//! A re-braided scene whose placements move (an instance's transform, an
+//! object's vertices) traces those that moved within
+//! [`RebraidParams::moving_hold_commits`] commits from a second top level,
+//! built at every commit, and keeps the top level over the others from
+//! the commit that last changed which placements move ([`Accel::Split`],
+//! [`SplitAccel`]): a frame of one moving object costs its refit, not a
+//! re-braiding of the whole scene.
 
 mod flat;
+mod split;
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -32,6 +41,7 @@ use rayon::prelude::*;
 
 use flat::FlatPart;
 pub use flat::{FlatAccel, PrimOrigin};
+pub use split::SplitAccel;
 
 use crate::bvh::{BuildParams, BvhStats, Kernel, SahCosts, TraversalCounters};
 use crate::toplevel::builder::{RefSources, TopLevelScratch, build_top_level_with};
@@ -172,6 +182,11 @@ struct Object {
     /// Edited after a commit took it in: never merged again (see
     /// [`SceneParams::merge_placed`]).
     edited: bool,
+    /// Commits made before it was added, and the commit its last move
+    /// (vertices or mesh edited after a commit took it in) goes into, 0
+    /// for none (see [`RebraidParams::moving_hold_commits`]).
+    born: u64,
+    moved: u64,
 }
 
 impl Object {
@@ -238,6 +253,56 @@ struct Instance {
     /// stays an instance, whose moves cost nothing to rebuild) or once its
     /// transformed vertices were not finite.
     bakeable: bool,
+    /// As [`Object`]'s: commits before it was added, and the commit its
+    /// last move goes into (0: none).
+    born: u64,
+    moved: u64,
+}
+
+/// Per object slot and per instance slot, whether the placement moved
+/// within [`RebraidParams::moving_hold_commits`] commits (an instance
+/// moves with its object's vertices too).
+#[derive(Clone, Debug, PartialEq)]
+struct Moving {
+    objects: Vec<bool>,
+    instances: Vec<bool>,
+}
+
+/// What a kept top level over the placements that did not move was built
+/// for: it serves a later commit only when all of this is the same (every
+/// edit of a placement makes it move, so the others are as they were).
+#[derive(Clone, Debug, PartialEq)]
+struct FixedKey {
+    /// [`Scene`]'s count of edits to what the scene holds (objects and
+    /// instances added or removed, placed, their update policies).
+    structure: u64,
+    params: SceneParams,
+    moving: Moving,
+}
+
+/// The placements a top level is built over.
+#[derive(Clone, Copy)]
+enum Part<'a> {
+    All,
+    /// Those that did not move.
+    Fixed(&'a Moving),
+    /// Those that did.
+    Moving(&'a Moving),
+}
+
+impl Part<'_> {
+    /// Whether the object placed directly (`instance` INVALID_ID) or the
+    /// instance is in this part.
+    fn takes(&self, object: ObjectId, instance: InstanceId) -> bool {
+        let moved = |m: &Moving| {
+            m.objects[object as usize] || (instance != INVALID_ID && m.instances[instance as usize])
+        };
+        match self {
+            Part::All => true,
+            Part::Fixed(m) => !moved(m),
+            Part::Moving(m) => moved(m),
+        }
+    }
 }
 
 /// The committed acceleration structure.
@@ -253,6 +318,9 @@ pub enum Accel {
     Empty,
     Flat(FlatAccel),
     TopLevel(TopLevelAccel),
+    /// A re-braided scene some of whose placements moved lately (see
+    /// [`RebraidParams::moving_hold_commits`]).
+    Split(SplitAccel),
 }
 
 /// What a commit did and how long each phase took.
@@ -286,11 +354,21 @@ pub struct CommitReport {
     pub object_build_ms: f64,
     /// Refitting the BVHs of `objects_refitted`.
     pub refit_ms: f64,
-    /// Top-level build (two-level modes) or the whole flat build (flat mode).
+    /// Top-level build (two-level modes: both top levels of a split
+    /// scene) or the whole flat build (flat mode).
     pub top_build_ms: f64,
     pub total_ms: f64,
-    /// Top-level statistics (two-level modes).
+    /// Top-level statistics (two-level modes; of a split scene, the top
+    /// level over the placements that did not move, as it was built).
     pub top: Option<TopLevelBuildStats>,
+    /// A split scene's top level over the placements that moved (see
+    /// [`RebraidParams::moving_hold_commits`]), built by this commit.
+    pub top_moving: Option<TopLevelBuildStats>,
+    /// The placements traced from that top level (its initial refs).
+    pub moving_placements: usize,
+    /// The top level over the placements that did not move was kept from
+    /// an earlier commit, not built.
+    pub fixed_top_reused: bool,
 }
 
 /// A scene of objects and instances with a committed acceleration structure.
@@ -311,6 +389,12 @@ pub struct Scene {
     /// The merged BVH of the objects placed directly, when
     /// [`SceneParams::merge_placed`] is on and there are members.
     merged: Option<Merged>,
+    /// Commits made (each call of [`Scene::commit`]).
+    commits: u64,
+    /// Edits to what the scene holds (see [`FixedKey::structure`]).
+    structure: u64,
+    /// What the fixed part of an [`Accel::Split`] was built for.
+    fixed_key: Option<FixedKey>,
 }
 
 impl Scene {
@@ -365,8 +449,11 @@ impl Scene {
             topology_changed: true,
             policy: UpdatePolicy::default(),
             edited: false,
+            born: self.commits,
+            moved: 0,
         }));
         self.changed = true;
+        self.structure += 1;
         Ok(self.objects.len() as u32 - 1)
     }
 
@@ -397,6 +484,7 @@ impl Scene {
         if o.placed != placed {
             o.placed = placed;
             self.changed = true;
+            self.structure += 1;
         }
         Ok(())
     }
@@ -411,6 +499,7 @@ impl Scene {
     /// [`UpdatePolicy::Refit`].
     pub fn set_mesh(&mut self, id: ObjectId, mesh: TriangleMesh) -> Result<(), Error> {
         mesh.validate()?;
+        let commits = self.commits;
         let o = self.object_mut(id)?;
         if mesh.indices != o.mesh.indices {
             o.topology_changed = true;
@@ -418,6 +507,9 @@ impl Scene {
         o.mesh = mesh;
         o.edited |= !o.dirty;
         o.dirty = true;
+        if commits > o.born {
+            o.moved = commits + 1;
+        }
         self.changed = true;
         Ok(())
     }
@@ -429,6 +521,7 @@ impl Scene {
             o.policy = policy;
             // It may join or leave the merged BVH.
             self.changed |= self.params.merge_placed;
+            self.structure += 1;
         }
         Ok(())
     }
@@ -455,6 +548,7 @@ impl Scene {
     /// Move the object's vertices (same count, same triangles); rebuilt or
     /// refitted at commit, by the object's [`UpdatePolicy`].
     pub fn set_vertices(&mut self, id: ObjectId, positions: &[glam::Vec3]) -> Result<(), Error> {
+        let commits = self.commits;
         let o = self.object_mut(id)?;
         if positions.len() != o.mesh.positions.len() {
             return Err(Error::VertexCountMismatch {
@@ -471,6 +565,9 @@ impl Scene {
         o.mesh.positions.copy_from_slice(positions);
         o.edited |= !o.dirty;
         o.dirty = true;
+        if commits > o.born {
+            o.moved = commits + 1;
+        }
         self.changed = true;
         Ok(())
     }
@@ -487,6 +584,7 @@ impl Scene {
             }
         }
         self.changed = true;
+        self.structure += 1;
         Ok(removed)
     }
 
@@ -506,8 +604,11 @@ impl Scene {
             object,
             xf: InstanceXf::new(transform),
             bakeable: true,
+            born: self.commits,
+            moved: 0,
         }));
         self.changed = true;
+        self.structure += 1;
         Ok(self.instances.len() as u32 - 1)
     }
 
@@ -531,6 +632,9 @@ impl Scene {
         }
         inst.bakeable = false;
         inst.xf = InstanceXf::new(transform);
+        if self.commits > inst.born {
+            inst.moved = self.commits + 1;
+        }
         self.changed = true;
         Ok(())
     }
@@ -551,6 +655,7 @@ impl Scene {
             .ok_or(Error::UnknownInstance(id))?;
         *slot = None;
         self.changed = true;
+        self.structure += 1;
         Ok(())
     }
 
@@ -623,6 +728,7 @@ impl Scene {
             mode,
             ..Default::default()
         };
+        self.commits += 1;
         if mode == AccelMode::Flat {
             let t = Instant::now();
             let mut parts = Vec::new();
@@ -669,17 +775,33 @@ impl Scene {
             // e.g. a caller's clone of the old structure, still holds it).
             // Should this commit fail from here on, queries hit nothing
             // until the next successful commit.
-            let (mut objects_buf, mut instances_buf) = (Vec::new(), Vec::new());
-            if let Accel::TopLevel(mut old) = std::mem::take(&mut self.accel)
-                && !self.no_buffer_reuse
-            {
-                self.top_scratch.recycle_layout(old.take_layout_buffers());
-                self.top_scratch.recycle(old.tree.nodes, old.refs);
-                objects_buf = old.objects;
-                instances_buf = old.instances;
-                objects_buf.clear();
-                instances_buf.clear();
+            //
+            // A re-braided scene some of whose placements moved lately is
+            // split (see `RebraidParams::moving_hold_commits`): the top
+            // level over the others is kept when it was built for the
+            // same placements.
+            let moving = self.moving_placements();
+            let key = moving.as_ref().map(|m| FixedKey {
+                structure: self.structure,
+                params: self.params.clone(),
+                moving: m.clone(),
+            });
+            let mut kept_fixed = None;
+            let mut bufs = Vec::new();
+            match std::mem::take(&mut self.accel) {
+                Accel::TopLevel(old) => bufs.push(self.take_apart(old)),
+                Accel::Split(SplitAccel { fixed, moving }) => {
+                    bufs.push(self.take_apart(moving));
+                    if key.is_some() && self.fixed_key == key {
+                        kept_fixed = Some(fixed);
+                    } else {
+                        bufs.push(self.take_apart(fixed));
+                    }
+                }
+                Accel::Empty | Accel::Flat(_) => {}
             }
+            self.fixed_key = None;
+            report.fixed_top_reused = kept_fixed.is_some();
 
             // Object BVHs of changed objects, in parallel across objects:
             // in world space for an object baked with its one instance
@@ -867,19 +989,92 @@ impl Scene {
                 - members.len();
 
             let t = Instant::now();
-            let top = self.build_top(mode, objects_buf, instances_buf)?;
+            let mut next_bufs = || bufs.pop().unwrap_or_default();
+            let (fixed, moving_top) = match &moving {
+                None => (self.build_top(mode, next_bufs(), Part::All)?, None),
+                Some(m) => {
+                    let fixed = match kept_fixed {
+                        Some(f) => f,
+                        None => self.build_top(mode, next_bufs(), Part::Fixed(m))?,
+                    };
+                    let moving = self.build_top(mode, next_bufs(), Part::Moving(m))?;
+                    (fixed, Some(moving))
+                }
+            };
             report.top_build_ms = t.elapsed().as_secs_f64() * 1e3;
-            report.instances_baked = top.baked.iter().map(|&(_, i)| i).collect();
+            // One part empty: the other alone, not kept.
+            let (top, split) = match moving_top {
+                Some(m) if fixed.tree.is_empty() => (m, None),
+                Some(m) if m.tree.is_empty() => (fixed, None),
+                Some(m) => (fixed, Some(m)),
+                None => (fixed, None),
+            };
+            report.instances_baked = self
+                .objects
+                .iter()
+                .filter_map(|o| Some(o.as_ref()?.baked.as_ref()?.instance))
+                .collect();
             report.top = Some(top.build_stats.clone());
-            self.accel = if top.tree.is_empty() {
-                Accel::Empty
-            } else {
-                Accel::TopLevel(top)
+            self.accel = match split {
+                Some(moving) => {
+                    report.top_moving = Some(moving.build_stats.clone());
+                    report.moving_placements = moving.build_stats.refs_initial;
+                    self.fixed_key = key;
+                    Accel::Split(SplitAccel { fixed: top, moving })
+                }
+                None if top.tree.is_empty() => Accel::Empty,
+                None => Accel::TopLevel(top),
             };
         }
         self.changed = false;
         report.total_ms = start.elapsed().as_secs_f64() * 1e3;
         Ok(report)
+    }
+
+    /// A previous commit's top level taken apart: its layout and build
+    /// arrays go back to the top-level buffers (unless buffer reuse is
+    /// off), its object and instance arrays are returned emptied for the
+    /// next top level, and its references to the object BVHs are dropped.
+    fn take_apart(
+        &mut self,
+        mut old: TopLevelAccel,
+    ) -> (Vec<Option<Arc<ObjectBvh>>>, Vec<InstanceXf>) {
+        if self.no_buffer_reuse {
+            return Default::default();
+        }
+        self.top_scratch.recycle_layout(old.take_layout_buffers());
+        self.top_scratch.recycle(old.tree.nodes, old.refs);
+        let (mut objects, mut instances) = (old.objects, old.instances);
+        objects.clear();
+        instances.clear();
+        (objects, instances)
+    }
+
+    /// The placements that moved within
+    /// [`RebraidParams::moving_hold_commits`] commits of this one, when the
+    /// scene is re-braided, splitting is on and any did.
+    fn moving_placements(&self) -> Option<Moving> {
+        let hold = self.params.rebraid.moving_hold_commits as u64;
+        if self.params.mode != AccelMode::Rebraided || hold == 0 {
+            return None;
+        }
+        let now = self.commits;
+        let recent = |moved: u64| moved > 0 && now < moved + hold;
+        let objects: Vec<bool> = self
+            .objects
+            .iter()
+            .map(|o| o.as_ref().is_some_and(|o| recent(o.moved)))
+            .collect();
+        let instances: Vec<bool> = self
+            .instances
+            .iter()
+            .map(|i| {
+                i.as_ref()
+                    .is_some_and(|i| recent(i.moved) || objects[i.object as usize])
+            })
+            .collect();
+        (objects.contains(&true) || instances.contains(&true))
+            .then_some(Moving { objects, instances })
     }
 
     /// The objects the merged BVH traces (see [`SceneParams::merge_placed`]),
@@ -945,27 +1140,37 @@ impl Scene {
     fn build_top(
         &mut self,
         mode: AccelMode,
-        mut objects: Vec<Option<Arc<ObjectBvh>>>,
-        mut instances: Vec<InstanceXf>,
+        (mut objects, mut instances): (Vec<Option<Arc<ObjectBvh>>>, Vec<InstanceXf>),
+        part: Part,
     ) -> Result<TopLevelAccel, Error> {
-        objects.extend(self.objects.iter().map(|o| {
+        // The fixed part holds no object that moved, so that it can be
+        // kept while their BVHs are refitted in place.
+        objects.extend(self.objects.iter().enumerate().map(|(id, o)| {
             o.as_ref()
                 .and_then(|o| o.bvh.clone())
                 .filter(|b| !b.mesh.is_empty())
+                .filter(|_| !matches!(part, Part::Fixed(m) if m.objects[id]))
         }));
-        // The merged BVH in the slot after the objects', then the baked
-        // placements' world-space BVHs.
-        let merged = self.merged.as_ref().map(|m| {
-            objects.push(Some(m.bvh.clone()));
-            MergedSlot {
-                slot: (objects.len() - 1) as u32,
-                origins: m.origins.clone(),
-            }
-        });
+        // The merged BVH in the slot after the objects' (its members never
+        // moved: an edit takes an object out), then the baked placements'
+        // world-space BVHs, those of this part.
+        let merged = self
+            .merged
+            .as_ref()
+            .filter(|_| !matches!(part, Part::Moving(_)))
+            .map(|m| {
+                objects.push(Some(m.bvh.clone()));
+                MergedSlot {
+                    slot: (objects.len() - 1) as u32,
+                    origins: m.origins.clone(),
+                }
+            });
         let baked_base = objects.len();
         let mut baked = Vec::new();
         for (id, o) in self.objects.iter().enumerate() {
-            if let Some(b) = o.as_ref().and_then(|o| o.baked.as_ref()) {
+            if let Some(b) = o.as_ref().and_then(|o| o.baked.as_ref())
+                && part.takes(id as u32, b.instance)
+            {
                 objects.push(Some(b.bvh.clone()));
                 baked.push((id as u32, b.instance));
             }
@@ -992,6 +1197,7 @@ impl Scene {
         for (id, o) in self.objects.iter().enumerate() {
             if let (Some(o), Some(bvh)) = (o, &objects[id])
                 && o.placed
+                && part.takes(id as u32, INVALID_ID)
             {
                 refs.push(direct_root(bvh, id));
             }
@@ -1020,6 +1226,7 @@ impl Scene {
             };
             if let Some(inst) = inst
                 && !is_baked(inst)
+                && part.takes(inst.object, id as u32)
                 && let Some(bvh) = &objects[inst.object as usize]
             {
                 refs.push(BuildRef {
@@ -1107,6 +1314,7 @@ impl Scene {
             Accel::Empty => None,
             Accel::Flat(f) => f.intersect_counted(ray, counters),
             Accel::TopLevel(t) => t.intersect_counted(ray, counters),
+            Accel::Split(s) => s.intersect_counted(ray, counters),
         }
     }
 
@@ -1122,6 +1330,7 @@ impl Scene {
             Accel::Empty => false,
             Accel::Flat(f) => f.occluded_counted(ray, counters),
             Accel::TopLevel(t) => t.occluded_counted(ray, counters),
+            Accel::Split(s) => s.occluded_counted(ray, counters),
         }
     }
 
@@ -1137,6 +1346,7 @@ impl Scene {
             Accel::Empty => out.fill(None),
             Accel::Flat(f) => f.intersect_many(rays, out),
             Accel::TopLevel(t) => t.intersect_many(rays, out),
+            Accel::Split(s) => s.intersect_many(rays, out),
         });
     }
 
@@ -1150,6 +1360,7 @@ impl Scene {
             Accel::Empty => out.fill(false),
             Accel::Flat(f) => f.occluded_many(rays, out),
             Accel::TopLevel(t) => t.occluded_many(rays, out),
+            Accel::Split(s) => s.occluded_many(rays, out),
         });
     }
 
@@ -1176,26 +1387,60 @@ impl Scene {
             Accel::TopLevel(t) => {
                 s.sah_cost = t.sah_cost(SahCosts::default());
                 s.wide_sah_cost = t.wide_sah_cost();
-                let object_bytes: usize = t
-                    .objects
-                    .iter()
-                    .flatten()
-                    .map(|o| {
-                        o.mesh.stats().bytes
-                            + std::mem::size_of_val(o.subtree_prims.as_slice())
-                            + std::mem::size_of_val(o.subtree_cost.as_slice())
-                            + std::mem::size_of_val(o.wide_of.as_slice())
-                            + o.wide.as_ref().map_or(0, |w| w.bytes())
-                    })
-                    .sum();
-                s.bytes = object_bytes + t.top_bytes() + t.wide.as_ref().map_or(0, |w| w.bytes());
+                s.bytes = object_bytes(&[t]) + top_bytes(t);
                 s.top_nodes = t.tree.nodes.len();
                 s.top_depth = t.tree.stats(SahCosts::default()).max_depth;
                 s.top = Some(t.build_stats.clone());
             }
+            Accel::Split(sp) => {
+                // The SAH figures of the two walks a ray makes, each
+                // weighted by the chance that a ray through the scene's
+                // box enters its part's box.
+                let (f, m) = (&sp.fixed, &sp.moving);
+                let area = |t: &TopLevelAccel| t.tree.nodes.first().map(|n| n.bounds());
+                let (fa, ma) = (area(f).unwrap_or_default(), area(m).unwrap_or_default());
+                let (fa, ma, all) = (
+                    fa.half_area() as f64,
+                    ma.half_area() as f64,
+                    fa.union(ma).half_area() as f64,
+                );
+                let weigh = |x: f64, a: f64| if all > 0.0 { x * a / all } else { 0.0 };
+                s.sah_cost = weigh(f.sah_cost(SahCosts::default()), fa)
+                    + weigh(m.sah_cost(SahCosts::default()), ma);
+                s.wide_sah_cost = weigh(f.wide_sah_cost(), fa) + weigh(m.wide_sah_cost(), ma);
+                s.bytes = object_bytes(&[f, m]) + top_bytes(f) + top_bytes(m);
+                s.top_nodes = f.tree.nodes.len() + m.tree.nodes.len();
+                s.top_depth = f
+                    .tree
+                    .stats(SahCosts::default())
+                    .max_depth
+                    .max(m.tree.stats(SahCosts::default()).max_depth);
+                s.top = Some(f.build_stats.clone());
+            }
         }
         s
     }
+}
+
+/// Bytes of the object BVHs the top levels hold, each counted once.
+fn object_bytes(tops: &[&TopLevelAccel]) -> usize {
+    let mut seen = std::collections::HashSet::new();
+    tops.iter()
+        .flat_map(|t| t.objects.iter().flatten())
+        .filter(|o| seen.insert(Arc::as_ptr(o)))
+        .map(|o| {
+            o.mesh.stats().bytes
+                + std::mem::size_of_val(o.subtree_prims.as_slice())
+                + std::mem::size_of_val(o.subtree_cost.as_slice())
+                + std::mem::size_of_val(o.wide_of.as_slice())
+                + o.wide.as_ref().map_or(0, |w| w.bytes())
+        })
+        .sum()
+}
+
+/// Bytes of a top level's own arrays and its wide layout.
+fn top_bytes(t: &TopLevelAccel) -> usize {
+    t.top_bytes() + t.wide.as_ref().map_or(0, |w| w.bytes())
 }
 
 /// Statistics of a committed scene.

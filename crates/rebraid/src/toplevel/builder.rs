@@ -334,6 +334,20 @@ pub struct RebraidParams {
     /// 2CylinderEngine +11% / +29% / +9% (primary / shadow / diffuse),
     /// cocoa temple +6% / +9% / +5%, ravenbridge +5% / -1% / +6%.
     pub bake_single_instances: bool,
+    /// Re-braided scenes: a placement that moved (an instance's transform,
+    /// an object's vertices or mesh, after a commit took it in) is traced
+    /// for this many commits, the one after its move included, from a
+    /// second top level over the placements that moved, built at every
+    /// commit, while the top level over the others is kept from the commit
+    /// that last changed which placements move (see
+    /// [`crate::scene::SplitAccel`]). 0: one top level over everything,
+    /// rebuilt at every commit.
+    ///
+    /// A placement that stops moving joins the kept top level this many
+    /// commits later (which rebuilds it), so an object moved now and then
+    /// does not rebuild it at every move; one that starts moving rebuilds
+    /// it once. Default 8.
+    pub moving_hold_commits: u32,
 }
 
 impl Default for RebraidParams {
@@ -362,6 +376,7 @@ impl Default for RebraidParams {
             graft_merged_max_prims: 1 << 18,
             parallel_threshold: 1024,
             bake_single_instances: true,
+            moving_hold_commits: 8,
         }
     }
 }
@@ -527,9 +542,12 @@ impl TopLevelScratch {
     }
 
     /// Hand back a previous top level's layout arrays
-    /// ([`super::TopLevelAccel::take_layout_buffers`]).
+    /// ([`super::TopLevelAccel::take_layout_buffers`]); of two handed back
+    /// (a split scene's), the larger are kept.
     pub fn recycle_layout(&mut self, layout: LayoutBuffers) {
-        self.layout = layout;
+        if layout.bytes() > self.layout.bytes() {
+            self.layout = layout;
+        }
     }
 
     /// The layout arrays for the next top level (the scratch keeps none

@@ -531,6 +531,10 @@ pub fn check_commit(scene: &Scene, model: &Model, n_rays: usize, seed: u64, what
             assert_ne!(mode, AccelMode::Flat, "{what}");
             check_top(t, model, what);
         }
+        Accel::Split(s) => {
+            assert_eq!(mode, AccelMode::Rebraided, "{what}: split accel");
+            check_tops(&[&s.fixed, &s.moving], model, what);
+        }
         Accel::Flat(_) => assert_eq!(mode, AccelMode::Flat, "{what}: flat accel"),
         Accel::Empty => assert_eq!(model.world_triangles(), 0, "{what}"),
     }
@@ -553,6 +557,7 @@ pub fn top(scene: &Scene) -> &TopLevelAccel {
     match scene.accel() {
         Accel::TopLevel(t) => t,
         Accel::Flat(_) => panic!("flat accel where a top level was expected"),
+        Accel::Split(_) => panic!("split accel where one top level was expected"),
         Accel::Empty => panic!("empty accel where a top level was expected"),
     }
 }
@@ -560,10 +565,25 @@ pub fn top(scene: &Scene) -> &TopLevelAccel {
 /// Validity, exact reachability (every primitive of every placement once)
 /// and consistent build statistics of a committed top level.
 pub fn check_top(t: &TopLevelAccel, model: &Model, what: &str) {
-    t.validate()
-        .unwrap_or_else(|e| panic!("{what}: invalid top level: {e}"));
+    check_tops(&[t], model, what);
+}
+
+/// [`check_top`] for the top levels of a split scene together: each valid
+/// and consistent, every primitive of every placement reachable from
+/// exactly one of them, once.
+pub fn check_tops(tops: &[&TopLevelAccel], model: &Model, what: &str) {
     let want = model.placements();
-    let counts = t.reachable_counts();
+    let mut counts: HashMap<(u32, u32), Vec<u32>> = HashMap::new();
+    let mut refs_initial = 0;
+    for t in tops {
+        for (key, c) in t.reachable_counts() {
+            assert!(
+                counts.insert(key, c).is_none(),
+                "{what}: placement {key:?} reachable from two top levels"
+            );
+        }
+        refs_initial += check_one_top(t, what);
+    }
     assert_eq!(
         counts.len(),
         want.len(),
@@ -580,13 +600,26 @@ pub fn check_top(t: &TopLevelAccel, model: &Model, what: &str) {
             panic!("{what}: {key:?} primitive {p} reachable {} times", c[p]);
         }
     }
-    // A merged BVH is one initial ref for all its members.
-    let merged_members = t.merged.as_ref().map_or(0, |m| {
-        let members: std::collections::BTreeSet<u32> = m.origins.iter().map(|&(o, _)| o).collect();
-        members.len() - 1
-    });
+    assert_eq!(refs_initial, want.len(), "{what}: initial refs");
+}
+
+/// Validity and build statistics of one top level; its initial refs, a
+/// merged BVH counted once per member.
+fn check_one_top(t: &TopLevelAccel, what: &str) -> usize {
+    t.validate()
+        .unwrap_or_else(|e| panic!("{what}: invalid top level: {e}"));
+    // A merged BVH is one initial ref for all its members, if the top
+    // level has it.
+    let merged_members = t
+        .merged
+        .as_ref()
+        .filter(|m| t.refs.iter().any(|r| r.object == m.slot))
+        .map_or(0, |m| {
+            let members: std::collections::BTreeSet<u32> =
+                m.origins.iter().map(|&(o, _)| o).collect();
+            members.len() - 1
+        });
     let s = &t.build_stats;
-    assert_eq!(s.refs_initial, want.len() - merged_members, "{what}: {s:?}");
     assert_eq!(s.refs_final, t.refs.len(), "{what}: {s:?}");
     assert!(s.refs_final <= s.capacity, "{what}: {s:?}");
     assert_eq!(s.spare_used, s.refs_final - s.refs_initial, "{what}: {s:?}");
@@ -599,6 +632,7 @@ pub fn check_top(t: &TopLevelAccel, model: &Model, what: &str) {
     assert_eq!(s.top_nodes, t.tree.nodes.len(), "{what}: {s:?}");
     let leaves = t.tree.nodes.iter().filter(|n| n.is_leaf()).count();
     assert_eq!(leaves, t.refs.len(), "{what}: one ref per top-level leaf");
+    s.refs_initial + merged_members
 }
 
 fn sorted_keys<V>(m: &HashMap<(u32, u32), V>) -> Vec<(u32, u32)> {
