@@ -136,6 +136,10 @@ struct SceneOpts {
     /// is kept (0: one top level over everything, rebuilt at every commit).
     #[arg(long)]
     moving_hold_commits: Option<u32>,
+    /// Re-braiding: split moving placements off only while their world
+    /// triangles are at most this share of the others'.
+    #[arg(long)]
+    moving_split_max_share: Option<f32>,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -214,6 +218,9 @@ impl SceneOpts {
         if let Some(h) = self.moving_hold_commits {
             r.moving_hold_commits = h;
         }
+        if let Some(s) = self.moving_split_max_share {
+            r.moving_split_max_share = s;
+        }
         p.object_build.check()?;
         r.check()?;
         Ok(p)
@@ -268,6 +275,10 @@ impl SceneOpts {
             (
                 "moving-hold-commits",
                 self.moving_hold_commits.map(|x| x.to_string()),
+            ),
+            (
+                "moving-split-max-share",
+                self.moving_split_max_share.map(|x| x.to_string()),
             ),
             (
                 "budget-overlap-unit",

@@ -1,4 +1,4 @@
-//! `rebraid animate` end to end: a tiny library with the default robot,
+//! `rebraid animate` end to end: a tiny library with a small robot,
 //! three frames in every mode, PNGs and JSON written, every ray set traced.
 
 use std::process::Command;
@@ -10,6 +10,9 @@ fn animate_writes_frames_and_json() {
     let json = dir.path().join("animate.json");
     let out = Command::new(env!("CARGO_BIN_EXE_rebraid"))
         .args(["animate", "library", "--scale", "0.02", "--frames", "3"])
+        // A robot small beside the library: the re-braided scene splits it
+        // off (`RebraidParams::moving_split_max_share`).
+        .args(["--dynamic-triangles", "3000"])
         .args(["--width", "64", "--height", "36"])
         .arg("-o")
         .arg(&frames)
@@ -67,5 +70,6 @@ fn animate_writes_frames_and_json() {
         }
     }
     assert_eq!(v["summary"].as_array().unwrap().len(), 3);
-    assert!(v["dynamic_triangles"].as_u64().unwrap() > 150_000);
+    let tris = v["dynamic_triangles"].as_u64().unwrap();
+    assert!((1000..10_000).contains(&tris), "{tris}");
 }

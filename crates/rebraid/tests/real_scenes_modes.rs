@@ -205,6 +205,8 @@ fn run(file: &str) {
         .max_by_key(|(_, (m, _))| m.len())
         .map(|(id, _)| id)
         .unwrap();
+    // Split whatever its share of the scene.
+    scene.params.rebraid.moving_split_max_share = f32::INFINITY;
     for k in 0..2 {
         let v = model.objects[&moved].0.positions.clone();
         scene.set_vertices(moved, &v).unwrap();

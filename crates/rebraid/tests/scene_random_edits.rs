@@ -75,9 +75,14 @@ fn param_sets() -> Vec<(&'static str, SceneParams)> {
             with(&|p| p.rebraid.moving_hold_commits = 0),
         ),
         (
+            "moved placements split off whatever their share",
+            with(&|p| p.rebraid.moving_split_max_share = f32::INFINITY),
+        ),
+        (
             "moved placements split off for one commit, merge placed",
             with(&|p| {
                 p.rebraid.moving_hold_commits = 1;
+                p.rebraid.moving_split_max_share = f32::INFINITY;
                 p.merge_placed = true;
             }),
         ),

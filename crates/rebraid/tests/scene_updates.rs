@@ -917,7 +917,9 @@ fn moving_placements_are_traced_apart_and_the_rest_kept() {
     let mut model = random_model(&mut r, &g);
     let mut p = params(AccelMode::Rebraided);
     p.rebraid.moving_hold_commits = 3;
-    let mut scene = model.to_scene(p);
+    // Split whatever the moving placements' share of the scene.
+    p.rebraid.moving_split_max_share = f32::INFINITY;
+    let mut scene = model.to_scene(p.clone());
     let placed: Vec<u32> = model
         .objects
         .iter()
@@ -1021,4 +1023,21 @@ fn moving_placements_are_traced_apart_and_the_rest_kept() {
         assert_eq!(h1.map(|h| h.t), h2.map(|h| h.t), "{ray:?}");
         assert_eq!(scene.occluded(ray), one.occluded(ray), "{ray:?}");
     }
+
+    // Not split while the moving placements' triangles are more than
+    // `moving_split_max_share` of the others': at 0, never.
+    scene.params.rebraid.moving_split_max_share = 0.0;
+    move_a(&mut scene, &mut model);
+    let rep = commit(&mut scene, &model, "share 0");
+    assert!(matches!(scene.accel(), Accel::TopLevel(_)));
+    assert!(rep.top_moving.is_none());
+    // At the default, a small object moving in a larger scene is split.
+    scene.params.rebraid.moving_split_max_share = 0.25;
+    let small = model.add_object(&mut scene, soup(&mut r, 3, SCENE_LO, SCENE_HI, 0.5), true);
+    commit(&mut scene, &model, "small object added");
+    let v = jitter(&mut r, &model.objects[&small].0);
+    scene.set_vertices(small, &v).unwrap();
+    model.objects.get_mut(&small).unwrap().0.positions = v;
+    let rep = commit(&mut scene, &model, "small object moved");
+    assert!(matches!(scene.accel(), Accel::Split(_)), "{rep:?}");
 }

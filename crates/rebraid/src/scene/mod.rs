@@ -1052,7 +1052,9 @@ impl Scene {
 
     /// The placements that moved within
     /// [`RebraidParams::moving_hold_commits`] commits of this one, when the
-    /// scene is re-braided, splitting is on and any did.
+    /// scene is re-braided, splitting is on, any did, and their world
+    /// triangles are at most [`RebraidParams::moving_split_max_share`] of
+    /// the others'.
     fn moving_placements(&self) -> Option<Moving> {
         let hold = self.params.rebraid.moving_hold_commits as u64;
         if self.params.mode != AccelMode::Rebraided || hold == 0 {
@@ -1073,7 +1075,27 @@ impl Scene {
                     .is_some_and(|i| recent(i.moved) || objects[i.object as usize])
             })
             .collect();
-        (objects.contains(&true) || instances.contains(&true))
+        // World triangles of the moving placements and of the others.
+        let (mut moving, mut fixed) = (0u64, 0u64);
+        let mut count = |is_moving: bool, o: &Object| {
+            let n = o.mesh.len() as u64;
+            if is_moving { moving += n } else { fixed += n }
+        };
+        for (id, o) in self.objects.iter().enumerate() {
+            if let Some(o) = o.as_ref().filter(|o| o.placed) {
+                count(objects[id], o);
+            }
+        }
+        for (id, i) in self.instances.iter().enumerate() {
+            if let Some(o) = i
+                .as_ref()
+                .and_then(|i| self.objects[i.object as usize].as_ref())
+            {
+                count(instances[id], o);
+            }
+        }
+        let share = self.params.rebraid.moving_split_max_share as f64;
+        (moving > 0 && moving as f64 <= share * fixed as f64)
             .then_some(Moving { objects, instances })
     }
 
