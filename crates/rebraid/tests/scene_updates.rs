@@ -957,6 +957,19 @@ fn moving_placements_are_traced_apart_and_the_rest_kept() {
     let instances_of_a = model.instances.values().filter(|(o, _)| *o == a).count();
     assert_eq!(rep.moving_placements, 1 + instances_of_a);
     let kept = fixed_nodes(&scene);
+    // Statistics over both parts, each object counted once.
+    let (st, Accel::Split(sp)) = (scene.stats(), scene.accel()) else {
+        unreachable!()
+    };
+    assert_eq!(
+        st.top_nodes,
+        sp.fixed.tree.nodes.len() + sp.moving.tree.nodes.len()
+    );
+    assert!(
+        st.bytes > 0 && st.sah_cost > 0.0 && st.wide_sah_cost > 0.0,
+        "{st:?}"
+    );
+    assert_eq!(st.top.as_ref(), Some(&sp.fixed.build_stats));
     // Again: the fixed part is kept as it was.
     for k in 0..3 {
         move_a(&mut scene, &mut model);
