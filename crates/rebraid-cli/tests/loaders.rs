@@ -425,6 +425,12 @@ fn obj_errors_name_the_line() {
             "line 2",
         ),
         (
+            // Finite, but beyond `rebraid::mesh::MAX_COORDINATE`.
+            format!("# far\nv 0 -3e38 0\n{v3}f 1 2 3\n"),
+            |e| matches!(e, LoadError::OutOfRange { .. }),
+            "line 2",
+        ),
+        (
             "v 1 2\nf 1 1 1\n".to_string(),
             |e| matches!(e, LoadError::Syntax { .. }),
             "line 1",
@@ -476,6 +482,10 @@ fn ply_errors_name_the_line_or_element() {
     let nan = good.replacen("1 1 0 255", "1 1e39 0 255", 1);
     let e = load_err("nan.ply", nan.as_bytes(), &["line 14"]);
     assert!(matches!(e, LoadError::NonFinite { .. }), "{e}");
+
+    let far = good.replacen("1 1 0 255", "1 2e19 0 255", 1);
+    let e = load_err("far.ply", far.as_bytes(), &["line 14", "beyond"]);
+    assert!(matches!(e, LoadError::OutOfRange { .. }), "{e}");
 
     let syntax = good.replacen("1 1 0 255", "1 one 0 255", 1);
     let e = load_err("syntax.ply", syntax.as_bytes(), &["line 14"]);
@@ -542,6 +552,18 @@ fn gltf_errors_name_the_element() {
         &["mesh 0"],
     );
     assert!(matches!(e, LoadError::NonFinite { .. }), "{e}");
+    // A position beyond `rebraid::mesh::MAX_COORDINATE`.
+    let mut far = QUAD;
+    far[2][0] = 3e38;
+    let e = load_err(
+        "far.glb",
+        &glb(
+            &tiny_gltf_json(3, "", "[0, 0, 0]"),
+            &glb_buffer(&far, [0, 1, 2]),
+        ),
+        &["mesh 0", "beyond"],
+    );
+    assert!(matches!(e, LoadError::OutOfRange { .. }), "{e}");
     // Transforms that overflow once composed.
     let huge = glb(
         &tiny_gltf_json(3, r#", "scale": [1e30, 1e30, 1e30]"#, "[0, 0, 0]")

@@ -93,12 +93,7 @@ impl KeyframedMesh {
                     got: f.len(),
                 });
             }
-            if let Some(i) = f.iter().position(|p| !p.is_finite()) {
-                return Err(Error::NonFiniteVertex {
-                    index: i,
-                    value: f[i].to_array(),
-                });
-            }
+            crate::mesh::check_positions(f)?;
         }
         for (t, tri) in self.indices.iter().enumerate() {
             if let Some(&v) = tri.iter().find(|&&v| v as usize >= nv) {

@@ -8,6 +8,11 @@ pub enum Error {
     #[error("vertex {index} has a non-finite coordinate ({value:?})")]
     NonFiniteVertex { index: usize, value: [f32; 3] },
     #[error(
+        "vertex {index} has a coordinate beyond +-{} ({value:?}), where box areas overflow",
+        crate::mesh::MAX_COORDINATE
+    )]
+    VertexOutOfRange { index: usize, value: [f32; 3] },
+    #[error(
         "triangle {triangle} references vertex {vertex}, but there are only {vertex_count} vertices"
     )]
     IndexOutOfRange {

@@ -10,6 +10,33 @@ use crate::bvh::{
 use crate::triangle::{WatertightRay, geometric_normal, intersect_triangle, is_degenerate};
 use crate::{Aabb, Error, Hit, INVALID_ID, Ray};
 
+/// The largest vertex coordinate magnitude a mesh may have: Embree's
+/// `FLT_LARGE`, below whose square the sums of products of box extents (box
+/// areas, the SAH's currency) stay finite. Embree drops primitives beyond
+/// it without a word; we refuse them with an error. (A scene at 3e38 was
+/// loaded before this check and built with NaN costs into a camera at
+/// infinity, session 34.)
+pub const MAX_COORDINATE: f32 = 1.844e18;
+
+/// The first vertex that is not finite ([`Error::NonFiniteVertex`]) or has
+/// a coordinate beyond [`MAX_COORDINATE`] ([`Error::VertexOutOfRange`]).
+pub fn check_positions(positions: &[Vec3]) -> Result<(), Error> {
+    // Each coordinate compared (a NaN fails its comparison; `max_element`
+    // would pass over it).
+    let bad = |p: &Vec3| !p.to_array().iter().all(|c| c.abs() <= MAX_COORDINATE);
+    match positions.iter().position(bad) {
+        None => Ok(()),
+        Some(index) => {
+            let value = positions[index].to_array();
+            Err(if positions[index].is_finite() {
+                Error::VertexOutOfRange { index, value }
+            } else {
+                Error::NonFiniteVertex { index, value }
+            })
+        }
+    }
+}
+
 /// An indexed triangle mesh: vertex positions and one `[u32; 3]` per triangle.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TriangleMesh {
@@ -61,14 +88,10 @@ impl TriangleMesh {
         Ok(Self { positions, indices })
     }
 
-    /// Every vertex finite, every index in range. Degenerate triangles are fine.
+    /// Every vertex finite and within [`MAX_COORDINATE`], every index in
+    /// range. Degenerate triangles are fine.
     pub fn validate(&self) -> Result<(), Error> {
-        if let Some(i) = self.positions.iter().position(|p| !p.is_finite()) {
-            return Err(Error::NonFiniteVertex {
-                index: i,
-                value: self.positions[i].to_array(),
-            });
-        }
+        check_positions(&self.positions)?;
         let nv = self.positions.len();
         for (t, tri) in self.indices.iter().enumerate() {
             if let Some(&v) = tri.iter().find(|&&v| v as usize >= nv) {
@@ -177,7 +200,8 @@ impl MeshBvh {
     /// copied). Each vertex is transformed once (transforming the three of
     /// every triangle where they are read made the engine's re-braided
     /// builds 6% slower, 16 alternations). A transform that takes a vertex
-    /// to infinity is an [`Error::NonFiniteVertex`].
+    /// to infinity is an [`Error::NonFiniteVertex`], beyond
+    /// [`MAX_COORDINATE`] an [`Error::VertexOutOfRange`].
     pub fn build_transformed(
         mesh: &TriangleMesh,
         xf: &glam::Affine3A,
@@ -190,12 +214,7 @@ impl MeshBvh {
             .with_min_len(4096)
             .map(|&v| xf.transform_point3(v))
             .collect();
-        if let Some(i) = moved.iter().position(|p| !p.is_finite()) {
-            return Err(Error::NonFiniteVertex {
-                index: i,
-                value: moved[i].to_array(),
-            });
-        }
+        check_positions(&moved)?;
         let triangle = |i: usize| mesh.indices[i].map(|k| moved[k as usize]);
         let (boxes, centroids) = triangle_build_boxes(mesh.len(), triangle);
         Self::build_over(&boxes, &centroids, triangle, params)
@@ -502,7 +521,12 @@ mod tests {
         let huge = Affine3A::from_scale(Vec3::splat(f32::MAX));
         assert!(matches!(
             MeshBvh::build_transformed(&mesh, &huge, &params),
-            Err(Error::NonFiniteVertex { .. })
+            Err(Error::NonFiniteVertex { .. } | Error::VertexOutOfRange { .. })
+        ));
+        let far = Affine3A::from_translation(Vec3::splat(1e19));
+        assert!(matches!(
+            MeshBvh::build_transformed(&mesh, &far, &params),
+            Err(Error::VertexOutOfRange { index: 0, .. })
         ));
     }
 }

@@ -169,13 +169,16 @@ fn million_collinear_triangles() {
     );
 }
 
-/// Centroids at `1.05^i` (and `-1.05^i`) over a range near the limits of
-/// `f32`: each SAH split peels off a few primitives, the worst case for depth,
-/// and boxes so large that their areas overflow to infinity.
+/// Centroids at `1.05^i` (and `-1.05^i`) up to the largest coordinate a
+/// mesh may have (`MAX_COORDINATE`, 1.844e18): each SAH split peels off a
+/// few primitives, the worst case for depth, and the SAH costs of the top
+/// splits (areas near 1e37 times hundreds of primitives) overflow to
+/// infinity. (Up to 1e36, as before the limit, the areas themselves
+/// overflowed.)
 #[test]
 fn exponentially_spaced_centroids() {
     let mut tris = Vec::new();
-    for i in 0..1_700 {
+    for i in 0..850 {
         let x = 1.05f32.powi(i);
         for sign in [1.0, -1.0] {
             let c = Vec3::new(sign * x, 0.0, 0.0);
@@ -677,4 +680,56 @@ fn invalid_boxes_are_rejected() {
         );
     }
     assert!(build_bvh(&vec![unit; n], &vec![c; n], &d).is_ok());
+}
+
+/// Coordinates beyond `MAX_COORDINATE` (Embree's `FLT_LARGE`, 1.844e18)
+/// are refused with their own error, in a mesh, in moved vertices and in a
+/// key-framed mesh; a mesh just inside it builds and is hit.
+#[test]
+fn coordinates_beyond_the_limit_are_rejected() {
+    use rebraid::mesh::MAX_COORDINATE;
+    for big in [1e19, -3e38, f32::MAX] {
+        let positions = vec![Vec3::ZERO, Vec3::X, Vec3::new(0.0, 0.0, big)];
+        let err = TriangleMesh::new(positions.clone(), vec![[0, 1, 2]]).unwrap_err();
+        assert!(
+            matches!(err, Error::VertexOutOfRange { index: 2, .. }),
+            "{err:?}"
+        );
+        assert!(err.to_string().contains("vertex 2"), "{err}");
+        let mut scene = rebraid::Scene::new();
+        let id = scene
+            .add_object(
+                TriangleMesh::new(vec![Vec3::ZERO, Vec3::X, Vec3::Y], vec![[0, 1, 2]]).unwrap(),
+            )
+            .unwrap();
+        let err = scene.set_vertices(id, &positions).unwrap_err();
+        assert!(
+            matches!(err, Error::VertexOutOfRange { index: 2, .. }),
+            "{err:?}"
+        );
+    }
+    // NaN among large values is still named non-finite.
+    let err = TriangleMesh::new(
+        vec![Vec3::ZERO, Vec3::X, Vec3::new(f32::NAN, 0.0, 0.0)],
+        vec![[0, 1, 2]],
+    )
+    .unwrap_err();
+    assert!(
+        matches!(err, Error::NonFiniteVertex { index: 2, .. }),
+        "{err:?}"
+    );
+    // Just inside: built and hit.
+    let m = MAX_COORDINATE * 0.5;
+    let mesh = TriangleMesh::new(
+        vec![
+            Vec3::new(-m, -m, 1.0),
+            Vec3::new(m, -m, 1.0),
+            Vec3::new(0.0, m, 1.0),
+        ],
+        vec![[0, 1, 2]],
+    )
+    .unwrap();
+    let bvh = MeshBvh::build(&mesh, &BuildParams::default()).unwrap();
+    let hit = bvh.intersect(&Ray::infinite(Vec3::ZERO, Vec3::Z)).unwrap();
+    assert_eq!(hit.t, 1.0);
 }

@@ -306,6 +306,7 @@ fn placements<'a>(
 enum Kind {
     BadIndex,
     NonFinite,
+    OutOfRange,
     Truncated,
     Unsupported,
 }
@@ -316,6 +317,7 @@ impl Kind {
         match self {
             Kind::BadIndex => LoadError::BadIndex { file, at, detail },
             Kind::NonFinite => LoadError::NonFinite { file, at, detail },
+            Kind::OutOfRange => LoadError::OutOfRange { file, at, detail },
             Kind::Truncated => LoadError::Truncated { file, at, detail },
             Kind::Unsupported => LoadError::Unsupported { file, at, detail },
         }
@@ -357,6 +359,15 @@ fn read_primitive(
         let p = Vec3::new(f(0), f(1), f(2));
         if !p.is_finite() {
             return Err((Kind::NonFinite, format!("POSITION {i} is not finite: {p}")));
+        }
+        if p.abs().max_element() > rebraid::mesh::MAX_COORDINATE {
+            return Err((
+                Kind::OutOfRange,
+                format!(
+                    "POSITION {i} ({p}) is beyond +-{}",
+                    rebraid::mesh::MAX_COORDINATE
+                ),
+            ));
         }
         positions.push(p);
     }

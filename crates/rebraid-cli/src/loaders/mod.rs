@@ -107,6 +107,13 @@ pub enum LoadError {
         at: Location,
         detail: String,
     },
+    /// A coordinate beyond `rebraid::mesh::MAX_COORDINATE`.
+    #[error("{}{at}: number out of range: {detail}", file.display())]
+    OutOfRange {
+        file: PathBuf,
+        at: Location,
+        detail: String,
+    },
     #[error("{}{at}: unsupported content: {detail}", file.display())]
     Unsupported {
         file: PathBuf,
@@ -125,6 +132,7 @@ impl LoadError {
             | LoadError::Syntax { file, .. }
             | LoadError::BadIndex { file, .. }
             | LoadError::NonFinite { file, .. }
+            | LoadError::OutOfRange { file, .. }
             | LoadError::Unsupported { file, .. } => file,
         }
     }
@@ -136,6 +144,7 @@ impl LoadError {
             | LoadError::Syntax { at, .. }
             | LoadError::BadIndex { at, .. }
             | LoadError::NonFinite { at, .. }
+            | LoadError::OutOfRange { at, .. }
             | LoadError::Unsupported { at, .. } => Some(at),
             _ => None,
         }
@@ -197,6 +206,7 @@ pub(crate) fn mesh_error(file: &Path, at: Location, e: rebraid::Error) -> LoadEr
         rebraid::Error::NonFiniteVertex { .. } | rebraid::Error::InvalidTransform(_) => {
             LoadError::NonFinite { file, at, detail }
         }
+        rebraid::Error::VertexOutOfRange { .. } => LoadError::OutOfRange { file, at, detail },
         rebraid::Error::IndexOutOfRange { .. } => LoadError::BadIndex { file, at, detail },
         _ => LoadError::Unsupported { file, at, detail },
     }

@@ -83,6 +83,7 @@ enum Kind {
     Syntax,
     BadIndex,
     NonFinite,
+    OutOfRange,
     Unsupported,
 }
 
@@ -166,6 +167,7 @@ impl<'a> Parser<'a> {
             Kind::Syntax => LoadError::Syntax { file, at, detail },
             Kind::BadIndex => LoadError::BadIndex { file, at, detail },
             Kind::NonFinite => LoadError::NonFinite { file, at, detail },
+            Kind::OutOfRange => LoadError::OutOfRange { file, at, detail },
             Kind::Unsupported => LoadError::Unsupported { file, at, detail },
         }
     }
@@ -262,6 +264,17 @@ impl<'a> Parser<'a> {
                             "vertex {} coordinate {:?}",
                             self.positions.len() + 1,
                             String::from_utf8_lossy(t)
+                        ),
+                    ));
+                }
+                if v.abs() > rebraid::mesh::MAX_COORDINATE {
+                    return Err(self.err(
+                        Kind::OutOfRange,
+                        format!(
+                            "vertex {} coordinate {} is beyond +-{}",
+                            self.positions.len() + 1,
+                            String::from_utf8_lossy(t),
+                            rebraid::mesh::MAX_COORDINATE
                         ),
                     ));
                 }

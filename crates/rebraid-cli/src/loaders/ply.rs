@@ -138,6 +138,17 @@ pub fn parse_ply(bytes: &[u8], file: &Path, _opts: &LoadOptions) -> Result<Scene
                         detail: format!("vertex {i} is {:?}", elem.xyz),
                     });
                 }
+                if p.abs().max_element() > rebraid::mesh::MAX_COORDINATE {
+                    return Err(LoadError::OutOfRange {
+                        file: file.to_path_buf(),
+                        at: at(),
+                        detail: format!(
+                            "vertex {i} ({:?}) is beyond +-{}",
+                            elem.xyz,
+                            rebraid::mesh::MAX_COORDINATE
+                        ),
+                    });
+                }
                 positions.push(p);
             } else if std::ptr::eq(def, face_def) {
                 let list = elem.list.ok_or_else(|| LoadError::Unsupported {

@@ -556,12 +556,7 @@ impl Scene {
                 got: positions.len(),
             });
         }
-        if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
-            return Err(Error::NonFiniteVertex {
-                index: i,
-                value: positions[i].to_array(),
-            });
-        }
+        crate::mesh::check_positions(positions)?;
         o.mesh.positions.copy_from_slice(positions);
         o.edited |= !o.dirty;
         o.dirty = true;
