@@ -15,7 +15,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use rebraid::glam::Vec3;
+use rebraid::glam::{Affine3A, Quat, Vec3};
 use rebraid::procedural_dynamic::{DynamicKind, DynamicObject, DynamicParams};
 use rebraid::{AccelMode, Ray, Scene, SceneParams, UpdatePolicy};
 use serde::Serialize;
@@ -34,13 +34,20 @@ pub enum DynamicArg {
     LibraryRobot,
     /// A wobbling torus gliding through the scene (key-framed mesh and transform).
     Deforming,
+    /// Sixty-four instances of one torus (the triangles shared out among
+    /// them) flying rigidly through the scene: instance transforms set per
+    /// frame, no vertex moves.
+    Swarm,
 }
+
+/// Instances of [`DynamicArg::Swarm`].
+pub const SWARM_INSTANCES: usize = 64;
 
 impl DynamicArg {
     pub fn kind(self) -> DynamicKind {
         match self {
             DynamicArg::LibraryRobot => DynamicKind::Robot,
-            DynamicArg::Deforming => DynamicKind::Deforming,
+            DynamicArg::Deforming | DynamicArg::Swarm => DynamicKind::Deforming,
         }
     }
 
@@ -48,8 +55,26 @@ impl DynamicArg {
         match self {
             DynamicArg::LibraryRobot => "library-robot",
             DynamicArg::Deforming => "deforming",
+            DynamicArg::Swarm => "swarm",
         }
     }
+}
+
+/// Object-to-world transform of swarm instance `k` at time `t`: spread
+/// over eight lanes beside the path and eight heights, each a phase of
+/// the path ahead of the last, turning about the up axis as it goes.
+fn swarm_transform(p: &DynamicParams, k: usize, t: f32) -> Affine3A {
+    let lane = (k % 8) as f32 - 3.5;
+    let level = (k / 8) as f32;
+    let along = (t + k as f32 / SWARM_INSTANCES as f32).fract();
+    let dir = p.end - p.start;
+    let side = p.up.cross(dir).normalize_or_zero();
+    let at = p.start
+        + dir * along
+        + side * (lane * 0.15 * p.height)
+        + p.up * (p.height * (0.2 + 0.1 * level));
+    let turn = Quat::from_axis_angle(p.up, std::f32::consts::TAU * (t + 0.37 * k as f32));
+    Affine3A::from_rotation_translation(turn, at)
 }
 
 /// How the animated object's BVH follows it (two-level modes).
@@ -183,8 +208,24 @@ pub fn run(cfg: &AnimateConfig) -> anyhow::Result<(Vec<FrameRow>, Vec<ModeSummar
         Some(s) => Camera::parse(s, up)?,
         None => Camera::fit(&bounds, up),
     };
+    let swarm = cfg.dynamic == DynamicArg::Swarm;
     let dyn_params = DynamicParams::in_box(&bounds, up, cfg.dynamic_triangles);
-    let object = DynamicObject::new(cfg.dynamic.kind(), &dyn_params)?;
+    let object = if swarm {
+        // One small torus, a twelfth of the height, centred at the origin
+        // as the instances' prototype.
+        DynamicObject::new(
+            cfg.dynamic.kind(),
+            &DynamicParams {
+                start: Vec3::ZERO,
+                end: Vec3::ZERO,
+                height: dyn_params.height / 12.0,
+                triangles: (cfg.dynamic_triangles / SWARM_INSTANCES).max(1),
+                ..dyn_params
+            },
+        )?
+    } else {
+        DynamicObject::new(cfg.dynamic.kind(), &dyn_params)?
+    };
     println!(
         "scene {}: {} objects, {} instances, {} triangles (loaded in {load_ms:.0} ms); camera {}",
         cfg.input.name(),
@@ -194,8 +235,13 @@ pub fn run(cfg: &AnimateConfig) -> anyhow::Result<(Vec<FrameRow>, Vec<ModeSummar
         camera.to_arg()
     );
     println!(
-        "dynamic {}: {} triangles, {} vertices, height {:.2}, path {:?} -> {:?}; policy {:?}, {} frames",
+        "dynamic {}: {}{} triangles, {} vertices, height {:.2}, path {:?} -> {:?}; policy {:?}, {} frames",
         cfg.dynamic.name(),
+        if swarm {
+            format!("{SWARM_INSTANCES} instances of ")
+        } else {
+            String::new()
+        },
         object.triangle_count(),
         object.vertex_count(),
         dyn_params.height,
@@ -241,7 +287,15 @@ pub fn run(cfg: &AnimateConfig) -> anyhow::Result<(Vec<FrameRow>, Vec<ModeSummar
             },
         )?;
         scene.set_reuse_top_level_buffers(cfg.reuse_buffers);
-        let id = scene.add_object(object.mesh_at(0.0))?;
+        let (id, swarm_ids) = if swarm {
+            let proto = scene.add_prototype(object.mesh_at(0.0))?;
+            let ids = (0..SWARM_INSTANCES)
+                .map(|k| scene.add_instance(proto, swarm_transform(&dyn_params, k, 0.0)))
+                .collect::<Result<Vec<_>, _>>()?;
+            (proto, ids)
+        } else {
+            (scene.add_object(object.mesh_at(0.0))?, Vec::new())
+        };
         scene.set_update_policy(id, cfg.policy.policy())?;
         let initial = scene.commit()?;
         println!(
@@ -277,8 +331,14 @@ pub fn run(cfg: &AnimateConfig) -> anyhow::Result<(Vec<FrameRow>, Vec<ModeSummar
                 0.0
             };
             let t0 = Instant::now();
-            object.positions_into(t, &mut positions);
-            scene.set_vertices(id, &positions)?;
+            if swarm {
+                for (k, &inst) in swarm_ids.iter().enumerate() {
+                    scene.set_instance_transform(inst, swarm_transform(&dyn_params, k, t))?;
+                }
+            } else {
+                object.positions_into(t, &mut positions);
+                scene.set_vertices(id, &positions)?;
+            }
             let interp_ms = t0.elapsed().as_secs_f64() * 1e3;
             let rep = scene.commit()?;
 
@@ -407,7 +467,7 @@ pub fn run(cfg: &AnimateConfig) -> anyhow::Result<(Vec<FrameRow>, Vec<ModeSummar
         let report = Report {
             scene: cfg.input.name(),
             dynamic: cfg.dynamic.name(),
-            dynamic_triangles: object.triangle_count(),
+            dynamic_triangles: object.triangle_count() * if swarm { SWARM_INSTANCES } else { 1 },
             static_triangles: desc.world_triangles(),
             policy: match cfg.policy {
                 PolicyArg::Refit => "refit",

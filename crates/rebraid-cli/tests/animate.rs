@@ -73,3 +73,51 @@ fn animate_writes_frames_and_json() {
     let tris = v["dynamic_triangles"].as_u64().unwrap();
     assert!((1000..10_000).contains(&tris), "{tris}");
 }
+
+/// The swarm: rigid instances moved by their transforms. From the first
+/// move on, the re-braided scene traces them from a top level of their
+/// own, and from the second keeps the library's.
+#[test]
+fn animate_swarm_moves_instances() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let json = dir.path().join("swarm.json");
+    let out = Command::new(env!("CARGO_BIN_EXE_rebraid"))
+        .args(["animate", "library", "--scale", "0.05", "--frames", "4"])
+        .args(["--dynamic", "swarm", "--dynamic-triangles", "3000"])
+        .args([
+            "--mode",
+            "two-level,rebraided",
+            "--width",
+            "48",
+            "--height",
+            "32",
+        ])
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .expect("run rebraid");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "exit {:?}\nstdout:\n{stdout}\nstderr:\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).expect("JSON");
+    assert_eq!(v["dynamic"], "swarm");
+    let rows = v["frames"].as_array().expect("frames array");
+    assert_eq!(rows.len(), 8);
+    for r in rows {
+        // Nothing but transforms moves.
+        assert_eq!(r["objects_refitted"], 0, "{r}");
+        assert_eq!(r["objects_rebuilt"], 0, "{r}");
+        assert!(r["diffuse_mrays_per_s"].as_f64().unwrap() > 0.0);
+        if r["mode"] == "rebraided" {
+            // Frame 0 sets the transforms the instances have: no move.
+            let f = r["frame"].as_u64().unwrap();
+            assert_eq!(r["moving_refs"].as_u64().unwrap() >= 64, f >= 1, "{r}");
+            assert_eq!(r["fixed_kept"], f >= 2, "{r}");
+        }
+    }
+}
