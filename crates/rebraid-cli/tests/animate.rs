@@ -1,32 +1,45 @@
 //! `rebraid animate` end to end: a tiny library with a small robot,
 //! three frames in every mode, PNGs and JSON written, every ray set traced.
 
+use std::path::Path;
 use std::process::Command;
 
-#[test]
-fn animate_writes_frames_and_json() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let frames = dir.path().join("frames");
-    let json = dir.path().join("animate.json");
+/// Command-line words.
+fn words(line: &str) -> Vec<String> {
+    line.split_whitespace().map(String::from).collect()
+}
+
+/// Run the tool with `args` and `--json json`; its stdout, once it has
+/// exited successfully.
+fn run_animate(args: Vec<String>, json: &Path) -> String {
     let out = Command::new(env!("CARGO_BIN_EXE_rebraid"))
-        .args(["animate", "library", "--scale", "0.02", "--frames", "3"])
-        // A robot small beside the library: the re-braided scene splits it
-        // off (`RebraidParams::moving_split_max_share`).
-        .args(["--dynamic-triangles", "3000"])
-        .args(["--width", "64", "--height", "36"])
-        .arg("-o")
-        .arg(&frames)
+        .args(args)
         .arg("--json")
-        .arg(&json)
+        .arg(json)
         .output()
         .expect("run rebraid");
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
     assert!(
         out.status.success(),
         "exit {:?}\nstdout:\n{stdout}\nstderr:\n{}",
         out.status,
         String::from_utf8_lossy(&out.stderr)
     );
+    stdout
+}
+
+#[test]
+fn animate_writes_frames_and_json() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let frames = dir.path().join("frames");
+    let json = dir.path().join("animate.json");
+    // A robot small beside the library: the re-braided scene splits it off
+    // (`RebraidParams::moving_split_max_share`).
+    let mut args = words(
+        "animate library --scale 0.02 --frames 3 --dynamic-triangles 3000 --width 64 --height 36",
+    );
+    args.extend(["-o".into(), frames.display().to_string()]);
+    let stdout = run_animate(args, &json);
     assert!(stdout.contains("summary"), "{stdout}");
     let modes = ["flat", "two-level", "rebraided"];
     for mode in modes {
@@ -81,28 +94,11 @@ fn animate_writes_frames_and_json() {
 fn animate_swarm_moves_instances() {
     let dir = tempfile::tempdir().expect("tempdir");
     let json = dir.path().join("swarm.json");
-    let out = Command::new(env!("CARGO_BIN_EXE_rebraid"))
-        .args(["animate", "library", "--scale", "0.05", "--frames", "4"])
-        .args(["--dynamic", "swarm", "--dynamic-triangles", "3000"])
-        .args([
-            "--mode",
-            "two-level,rebraided",
-            "--width",
-            "48",
-            "--height",
-            "32",
-        ])
-        .arg("--json")
-        .arg(&json)
-        .output()
-        .expect("run rebraid");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "exit {:?}\nstdout:\n{stdout}\nstderr:\n{}",
-        out.status,
-        String::from_utf8_lossy(&out.stderr)
+    let args = words(
+        "animate library --scale 0.05 --frames 4 --dynamic swarm --dynamic-triangles 3000 \
+         --mode two-level,rebraided --width 48 --height 32",
     );
+    run_animate(args, &json);
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).expect("JSON");
     assert_eq!(v["dynamic"], "swarm");

@@ -20,6 +20,20 @@ fn params(mode: AccelMode) -> SceneParams {
     }
 }
 
+/// A scene of a few objects of each kind and some instances, for the
+/// tests that edit it commit by commit.
+fn edited_gen() -> Gen {
+    Gen {
+        clustered: 4,
+        scattered: 1,
+        grids: 1,
+        tris: 80,
+        prototypes: 2,
+        instances: 6,
+        mirror: true,
+    }
+}
+
 /// Check a commit's report and the scene's answers against the model.
 fn verify(
     scene: &Scene,
@@ -596,15 +610,7 @@ fn merged_objects_are_rebuilt_exactly_when_members_change() {
     };
     for mode in [AccelMode::TwoLevel, AccelMode::Rebraided] {
         let mut rng = rng(70);
-        let g = Gen {
-            clustered: 4,
-            scattered: 1,
-            grids: 1,
-            tris: 80,
-            prototypes: 2,
-            instances: 6,
-            mirror: true,
-        };
+        let g = edited_gen();
         let mut model = random_model(&mut rng, &g);
         let mut scene = model.to_scene(SceneParams {
             merge_placed: true,
@@ -905,15 +911,7 @@ fn a_scene_of_one_object_is_walked_directly_through_its_updates() {
 #[test]
 fn moving_placements_are_traced_apart_and_the_rest_kept() {
     let mut r = rng(4242);
-    let g = Gen {
-        clustered: 4,
-        scattered: 1,
-        grids: 1,
-        tris: 80,
-        prototypes: 2,
-        instances: 6,
-        mirror: true,
-    };
+    let g = edited_gen();
     let mut model = random_model(&mut r, &g);
     let mut p = params(AccelMode::Rebraided);
     p.rebraid.moving_hold_commits = 3;
