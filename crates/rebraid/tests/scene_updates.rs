@@ -1052,3 +1052,50 @@ fn moving_placements_are_traced_apart_and_the_rest_kept() {
     let rep = commit(&mut scene, &model, "small object moved");
     assert!(matches!(scene.accel(), Accel::Split(_)), "{rep:?}");
 }
+
+/// A commit with nothing to do (no edit, the same parameters, the same
+/// placements moving within the hold) keeps the structure as it is and
+/// builds nothing; an edit, a parameter change or a policy change makes the
+/// next commit build again. In every mode, answers against the brute force.
+#[test]
+fn a_commit_without_edits_builds_nothing() {
+    for mode in AccelMode::ALL {
+        let mut r = rng(515);
+        let mut model = random_model(&mut r, &edited_gen());
+        let mut scene = model.to_scene(params(mode));
+        let what = |s: &str| format!("{mode:?} {s}");
+        let rep = scene.commit().unwrap();
+        assert!(rep.top_build_ms > 0.0, "{}", what("first"));
+        let rep = scene.commit().unwrap();
+        assert_eq!(rep.top_build_ms, 0.0, "{}", what("again"));
+        assert!(rep.objects_rebuilt.is_empty(), "{}", what("again"));
+        if mode != AccelMode::Flat {
+            assert_eq!(rep.objects_reused, model.objects.len(), "{}", what("again"));
+            assert!(rep.top.is_some(), "{}", what("again"));
+        }
+        check_commit(&scene, &model, 200, 1, &what("again"));
+
+        scene.params.rebraid.threshold = 0.2;
+        let rep = scene.commit().unwrap();
+        assert!(rep.top_build_ms > 0.0, "{}", what("parameters changed"));
+
+        let id = *model.objects.keys().next().unwrap();
+        scene.set_update_policy(id, UpdatePolicy::Refit).unwrap();
+        assert!(scene.needs_commit(), "{}", what("policy changed"));
+        let rep = scene.commit().unwrap();
+        assert!(rep.top_build_ms > 0.0, "{}", what("policy changed"));
+
+        let v = jitter(&mut r, &model.objects[&id].0);
+        scene.set_vertices(id, &v).unwrap();
+        model.objects.get_mut(&id).unwrap().0.positions = v;
+        let rep = scene.commit().unwrap();
+        assert!(rep.top_build_ms > 0.0, "{}", what("moved"));
+        check_commit(&scene, &model, 200, 2, &what("moved"));
+        // Nothing more: kept, split or not, until the hold runs out.
+        for k in 0..3 {
+            let rep = scene.commit().unwrap();
+            assert_eq!(rep.top_build_ms, 0.0, "{}", what(&format!("still {k}")));
+        }
+        check_commit(&scene, &model, 200, 3, &what("still"));
+    }
+}
