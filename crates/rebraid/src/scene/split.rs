@@ -76,7 +76,9 @@ impl PaddedBox {
     #[inline(always)]
     fn meets(&self, ray: &Ray, t_max: f32) -> bool {
         let (o, d) = (Vec3A::from(ray.origin), Vec3A::from(ray.dir));
-        if d.cmpeq(Vec3A::ZERO).any() {
+        // Below the smallest normal float a reciprocal overflows, and an
+        // infinity times a zero distance would be a NaN.
+        if d.abs().cmplt(Vec3A::splat(f32::MIN_POSITIVE)).any() {
             return self.meets_axis_parallel(ray, t_max);
         }
         let inv = d.recip();
@@ -86,8 +88,10 @@ impl PaddedBox {
         near <= far + far.abs() * 1e-5
     }
 
-    /// [`PaddedBox::meets`] for a ray with a zero direction component
-    /// (parallel to two of the box's faces).
+    /// [`PaddedBox::meets`] for a ray with a zero or subnormal direction
+    /// component: parallel to two of the box's faces (it meets their slab
+    /// only if it starts in it), or so nearly so that the slab is not
+    /// tested at all (erring towards yes).
     #[cold]
     fn meets_axis_parallel(&self, ray: &Ray, t_max: f32) -> bool {
         let (mut near, mut far) = (ray.t_min, t_max);
@@ -97,6 +101,9 @@ impl PaddedBox {
                 if o < self.lo[a] || o > self.hi[a] {
                     return false;
                 }
+                continue;
+            }
+            if d.abs() < f32::MIN_POSITIVE {
                 continue;
             }
             let (t0, t1) = ((self.lo[a] - o) / d, (self.hi[a] - o) / d);
@@ -303,5 +310,9 @@ mod tests {
             &Ray::new(Vec3::ZERO, Vec3::X, 3.0, inf).unwrap(),
             &Aabb::new(Vec3::ZERO, Vec3::ONE)
         ));
+        // A subnormal component, the origin on the padded face's plane.
+        let tiny = Vec3::new(1.0, 1e-40, 0.0);
+        let on_face = Vec3::new(0.0, 1.0 - 2e-6, 1.5);
+        assert!(may_meet(&ray(on_face, tiny, inf), &b));
     }
 }
