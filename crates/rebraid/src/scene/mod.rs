@@ -765,6 +765,7 @@ impl Scene {
                 self.params.kernel.unwrap_or_else(Kernel::best),
             )?;
             report.top_build_ms = t.elapsed().as_secs_f64() * 1e3;
+            self.fixed_key = None;
             self.accel = if flat.bvh.is_empty() {
                 Accel::Empty
             } else {
