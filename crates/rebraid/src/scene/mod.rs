@@ -358,8 +358,9 @@ pub struct CommitReport {
     /// scene) or the whole flat build (flat mode).
     pub top_build_ms: f64,
     pub total_ms: f64,
-    /// Top-level statistics (two-level modes; of a split scene, the top
-    /// level over the placements that did not move, as it was built).
+    /// Top-level statistics (two-level modes, none for an empty scene; of a
+    /// split scene, the top level over the placements that did not move,
+    /// as it was built).
     pub top: Option<TopLevelBuildStats>,
     /// A split scene's top level over the placements that moved (see
     /// [`RebraidParams::moving_hold_commits`]), built by this commit.
@@ -1013,22 +1014,15 @@ impl Scene {
                 Some(m) => (fixed, Some(m)),
                 None => (fixed, None),
             };
-            report.instances_baked = self
-                .objects
-                .iter()
-                .filter_map(|o| Some(o.as_ref()?.baked.as_ref()?.instance))
-                .collect();
-            report.top = Some(top.build_stats.clone());
             self.accel = match split {
                 Some(moving) => {
-                    report.top_moving = Some(moving.build_stats.clone());
-                    report.moving_placements = moving.build_stats.refs_initial;
                     self.fixed_key = key;
                     Accel::Split(SplitAccel { fixed: top, moving })
                 }
                 None if top.tree.is_empty() => Accel::Empty,
                 None => Accel::TopLevel(top),
             };
+            self.report_structure(&mut report);
         }
         self.changed = false;
         self.committed_params = Some(self.params.clone());
@@ -1058,30 +1052,35 @@ impl Scene {
     /// The report of a commit that found the structure up to date: every
     /// object reused, the top level's statistics as built.
     fn up_to_date_report(&self, mut report: CommitReport, start: Instant) -> CommitReport {
-        let tops = match &self.accel {
-            Accel::TopLevel(t) => Some((t, None)),
-            Accel::Split(s) => Some((&s.fixed, Some(&s.moving))),
-            Accel::Empty | Accel::Flat(_) => None,
-        };
         if report.mode != AccelMode::Flat {
             report.objects_merged = self.merged.as_ref().map_or(0, |m| m.members.len());
             report.objects_reused = self.object_count() - report.objects_merged;
-            report.instances_baked = self
-                .objects
-                .iter()
-                .filter_map(|o| Some(o.as_ref()?.baked.as_ref()?.instance))
-                .collect();
-        }
-        if let Some((top, moving)) = tops {
-            report.top = Some(top.build_stats.clone());
-            if let Some(m) = moving {
-                report.top_moving = Some(m.build_stats.clone());
-                report.moving_placements = m.build_stats.refs_initial;
-                report.fixed_top_reused = true;
-            }
+            report.fixed_top_reused = matches!(self.accel, Accel::Split(_));
+            self.report_structure(&mut report);
         }
         report.total_ms = start.elapsed().as_secs_f64() * 1e3;
         report
+    }
+
+    /// What a report says of the committed two-level structure: the baked
+    /// instances, the top level's statistics, and a split scene's moving
+    /// part.
+    fn report_structure(&self, report: &mut CommitReport) {
+        report.instances_baked = self
+            .objects
+            .iter()
+            .filter_map(|o| Some(o.as_ref()?.baked.as_ref()?.instance))
+            .collect();
+        let (top, moving) = match &self.accel {
+            Accel::TopLevel(t) => (t, None),
+            Accel::Split(s) => (&s.fixed, Some(&s.moving)),
+            Accel::Empty | Accel::Flat(_) => return,
+        };
+        report.top = Some(top.build_stats.clone());
+        if let Some(m) = moving {
+            report.top_moving = Some(m.build_stats.clone());
+            report.moving_placements = m.build_stats.refs_initial;
+        }
     }
 
     /// A previous commit's top level taken apart: its layout and build
