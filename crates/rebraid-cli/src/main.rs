@@ -7,6 +7,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
+use rebraid::bvh::ReinsertParams;
 use rebraid::{AccelMode, RefBudget, Scene, SceneParams};
 use rebraid_cli::animate;
 use rebraid_cli::bench::{
@@ -119,6 +120,15 @@ struct SceneOpts {
     /// Largest leaf of object (and flat) BVHs.
     #[arg(long)]
     max_leaf: Option<u32>,
+    /// Re-braiding: reinsertion over the top level after its build, as
+    /// RATIO,PASSES (the share of its nodes searched per pass, the passes;
+    /// default 0.1,4; "off": none).
+    #[arg(long)]
+    reinsert: Option<String>,
+    /// Reinsertion over every object (and flat) BVH after its build, as
+    /// RATIO,PASSES (default off).
+    #[arg(long)]
+    reinsert_objects: Option<String>,
     /// Two-level modes: trace the objects placed directly (not instanced,
     /// without instances, not refitted) from one BVH over all their
     /// triangles, as a static scene; an object's first edit takes it out
@@ -211,6 +221,12 @@ impl SceneOpts {
         if let Some(m) = self.max_leaf {
             p.object_build.max_leaf_size = m;
         }
+        if let Some(v) = &self.reinsert {
+            r.reinsert = parse_reinsert("--reinsert", v)?;
+        }
+        if let Some(v) = &self.reinsert_objects {
+            p.object_build.reinsert = parse_reinsert("--reinsert-objects", v)?;
+        }
         p.merge_placed = self.merge_placed;
         if let Some(g) = self.graft_merged_max_prims {
             r.graft_merged_max_prims = g;
@@ -286,6 +302,8 @@ impl SceneOpts {
             ),
             ("open-rounds", self.open_rounds.map(|x| x.to_string())),
             ("max-leaf", self.max_leaf.map(|x| x.to_string())),
+            ("reinsert", self.reinsert.clone()),
+            ("reinsert-objects", self.reinsert_objects.clone()),
         ];
         v.extend(
             values
@@ -307,6 +325,24 @@ impl SceneOpts {
         };
         Ok((cam, up))
     }
+}
+
+/// `RATIO,PASSES` or `off`.
+fn parse_reinsert(flag: &str, s: &str) -> anyhow::Result<ReinsertParams> {
+    if s.trim() == "off" {
+        return Ok(ReinsertParams::OFF);
+    }
+    let parsed = s.split_once(',').and_then(|(r, p)| {
+        Some(ReinsertParams {
+            batch_ratio: r.trim().parse().ok()?,
+            passes: p.trim().parse().ok()?,
+        })
+    });
+    let Some(params) = parsed else {
+        bail!("{flag}: '{s}' is not RATIO,PASSES (e.g. 0.1,4) or off");
+    };
+    params.check().with_context(|| format!("{flag}: '{s}'"))?;
+    Ok(params)
 }
 
 fn parse_threads(s: &str) -> anyhow::Result<Vec<usize>> {

@@ -558,6 +558,21 @@ fn stats_library_json() {
     let wide_sah = |i: usize| modes[i]["wide_sah_cost"].as_f64().unwrap();
     assert!(wide_sah(2) < wide_sah(1), "{v}");
     assert!(modes[2]["refs_opened"].as_u64().unwrap() > 0, "{v}");
+    // The reinsertion options reach the trees: the re-braided top level
+    // without it, the flat tree with it.
+    let with = |extra: &[&str]| {
+        let json = dir.path().join("r.json");
+        let mut a = vec!["stats", "library", "--scale", "0.02", "--json", s(&json)];
+        a.extend_from_slice(extra);
+        ok(dir.path(), &a);
+        let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        let m = v["modes"].as_array().unwrap().clone();
+        [0, 2].map(|i| m[i]["sah_cost"].as_f64().unwrap())
+    };
+    let [_, top_off] = with(&["--reinsert", "off"]);
+    assert!(top_off > sah(2), "{top_off} without, {} with", sah(2));
+    let [flat_on, _] = with(&["--reinsert-objects", "0.2,3"]);
+    assert!(flat_on < sah(0), "{flat_on} with, {} without", sah(0));
 }
 
 #[test]
@@ -660,6 +675,16 @@ fn bad_arguments_exit_with_one_error_line() {
     assert!(e.contains("--scale"), "{e}");
     let e = fails(d, &["stats", "--scale", "0"]);
     assert!(e.contains("--scale"), "{e}");
+    let e = fails(d, &["stats", "--reinsert", "0.1"]);
+    assert!(
+        e.contains("--reinsert") && e.contains("RATIO,PASSES"),
+        "{e}"
+    );
+    let e = fails(d, &["stats", "--reinsert-objects", "1.5,2"]);
+    assert!(
+        e.contains("--reinsert-objects") && e.contains("ratio"),
+        "{e}"
+    );
     std::fs::write(d.join("scene.stl"), "solid x\n").unwrap();
     let e = fails(d, &["stats", "scene.stl"]);
     assert!(e.contains("scene.stl") && e.contains("extension"), "{e}");

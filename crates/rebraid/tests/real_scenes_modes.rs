@@ -10,6 +10,7 @@
 mod scene_common;
 
 use rand::Rng;
+use rebraid::bvh::ReinsertParams;
 use rebraid::scene::Accel;
 use rebraid::triangle::{WatertightRay, intersect_triangle};
 use rebraid::{Aabb, AccelMode, Hit, Ray, RebraidParams, RefBudget, SceneParams};
@@ -149,6 +150,23 @@ fn run(file: &str) {
             "threshold 0",
             RebraidParams {
                 threshold: 0.0,
+                ..Default::default()
+            },
+        ),
+        (
+            "no reinsertion",
+            RebraidParams {
+                reinsert: ReinsertParams::OFF,
+                ..Default::default()
+            },
+        ),
+        (
+            "reinsertion 1 x 8",
+            RebraidParams {
+                reinsert: ReinsertParams {
+                    batch_ratio: 1.0,
+                    passes: 8,
+                },
                 ..Default::default()
             },
         ),

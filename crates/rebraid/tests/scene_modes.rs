@@ -682,6 +682,55 @@ fn a_copied_object_leaf_counts_as_one_leaf() {
     assert_eq!((counted.inner_visited, counted.leaves_visited), (1, 1));
 }
 
+/// Reinsertion over every object and flat BVH (`BuildParams::reinsert`)
+/// and a heavy one over the re-braided top level, with every kernel: the
+/// trees change, the answers do not.
+#[test]
+fn reinserted_trees_match_brute_force_in_every_mode() {
+    let reinserted = |kernel| {
+        let mut p = SceneParams {
+            kernel: Some(kernel),
+            ..params(AccelMode::Flat)
+        };
+        p.object_build.reinsert = rebraid::bvh::ReinsertParams {
+            batch_ratio: 0.5,
+            passes: 4,
+        };
+        p.rebraid.reinsert = rebraid::bvh::ReinsertParams {
+            batch_ratio: 1.0,
+            passes: 8,
+        };
+        p
+    };
+    let cases = [
+        (
+            random_model(&mut rng(950), &clustered_with_instances()),
+            "clustered",
+        ),
+        (library_model(951, 16, 200, 4), "library+instances"),
+    ];
+    for (model, what) in &cases {
+        let world = model.world();
+        let mut rays = random_rays(&mut rng(952), &world, 1200, SCENE_LO, SCENE_HI);
+        rays.extend(camera_rays(Vec3::new(9.3, 30.0, 11.1), 8.0));
+        for kernel in rebraid::bvh::Kernel::available() {
+            let what = format!("reinserted {what} {kernel:?}");
+            all_modes_vs_brute_with(model, &rays, &what, reinserted(kernel));
+        }
+        // The option reaches the trees: the object trees' SAH is lower.
+        let sah = |p: SceneParams| {
+            let mut scene = model.to_scene(p);
+            scene.set_mode(AccelMode::Flat);
+            scene.commit().unwrap();
+            scene.stats().sah_cost
+        };
+        let best = rebraid::bvh::Kernel::best();
+        let plain = sah(params(AccelMode::Flat));
+        let better = sah(reinserted(best));
+        assert!(better < plain, "{what}: flat SAH {plain} -> {better}");
+    }
+}
+
 /// `SceneParams::merge_placed`: the objects placed directly traced from one
 /// BVH over all their triangles. Random scenes (objects placed and also
 /// instanced, which stay out, prototypes, mirrored instances), the library

@@ -7,6 +7,7 @@ pub mod occlusion_order;
 #[cfg(target_arch = "x86_64")]
 pub mod packet;
 mod refit;
+pub mod reinsert;
 pub mod simd;
 mod stats;
 mod traverse;
@@ -18,6 +19,7 @@ pub use binning::BinBox;
 pub use build::{BuildParams, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh, build_bvh_aligned};
 pub(crate) use build::{compact_slots, split_slots};
 pub use node::BvhNode;
+pub use reinsert::ReinsertParams;
 pub use simd::{
     BoxTester, FmaSlab, Kernel, TesterFactory, WIDE_STACK, WideMeshBvh, WideQuery, intersect_many,
     occluded_many, query_many, query_subtree, subtree_with, traverse_wide, traverse_with,

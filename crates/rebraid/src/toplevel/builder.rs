@@ -63,6 +63,7 @@ use super::{InstanceXf, LayoutBuffers, ObjectBvh, TopRef};
 use crate::bvh::binning::{
     BinBox, BinMapping, BinRange, Bins, MAX_BINS, SplitCandidate, with_bins,
 };
+use crate::bvh::reinsert::{ReinsertParams, reinsert, reorder_depth_first};
 use crate::bvh::wide::WIDE_EMPTY;
 use crate::bvh::{Bvh, BvhNode, MEDIAN_FROM_DEPTH, compact_slots, split_slots};
 use crate::{Aabb, Error, INVALID_ID};
@@ -362,6 +363,22 @@ pub struct RebraidParams {
     /// diffuse 0.94; nexuiz (125K) 21.4 -> 14.7 ms, primary 0.83, diffuse
     /// 0.97. Default 0.25: the library splits, those two do not.
     pub moving_split_max_share: f32,
+    /// Reinsertion over the top level's binary tree after its build
+    /// ([`crate::bvh::reinsert`]; Bittner et al. 2013, Meister and Bittner
+    /// 2018): subtrees the top-down binned build put in poor places,
+    /// mostly the refs that opening produced deep in a list, move to where
+    /// the summed area of the inner nodes is lowest. Ignored when `open`
+    /// is off (the plain two-level mode stays plain).
+    ///
+    /// Measured (session 36; Embree's statistic of the traversed wide
+    /// layout, `rebraid stats`, and the search's time on one thread): at
+    /// 0.1 x 4 nexuiz 18.65 -> 17.89 (1.6 ms), samurai 11.26 -> 11.04
+    /// (1.5 ms), the cocoa temple 6.26 -> 6.01 (1.1 ms), the library at 3M
+    /// triangles 25.81 -> 24.52 (56 ms, of a 220 ms top level); 1 x 16
+    /// reaches 17.16, 10.38 and 5.95 for 40-50 ms. Wall time against
+    /// none (`tools/ab-wall.sh`, one thread): see docs/performance.md,
+    /// session 36. Default 0.1 x 4.
+    pub reinsert: ReinsertParams,
 }
 
 impl Default for RebraidParams {
@@ -392,6 +409,10 @@ impl Default for RebraidParams {
             bake_single_instances: true,
             moving_hold_commits: 8,
             moving_split_max_share: 0.25,
+            reinsert: ReinsertParams {
+                batch_ratio: 0.1,
+                passes: 4,
+            },
         }
     }
 }
@@ -411,6 +432,7 @@ impl RebraidParams {
                 "bins must be in 2..={MAX_BINS}"
             )));
         }
+        self.reinsert.check()?;
         if self.max_leaf_refs == 0 {
             return Err(Error::InvalidParameter(
                 "max_leaf_refs must be at least 1".into(),
@@ -670,6 +692,14 @@ pub fn build_top_level_with(
         }));
         leaf.index = first;
     });
+    if params.open && reinsert(&mut nodes, &params.reinsert) {
+        // Depth-first again, the refs in the new leaf order.
+        let map = reorder_depth_first(&mut nodes);
+        let old = out_refs.clone();
+        for (r, &m) in out_refs.iter_mut().zip(&map) {
+            *r = old[m as usize];
+        }
+    }
     let stats = TopLevelBuildStats {
         refs_initial: n,
         refs_final: out_refs.len(),
