@@ -121,12 +121,12 @@ struct SceneOpts {
     #[arg(long)]
     max_leaf: Option<u32>,
     /// Re-braiding: reinsertion over the top level after its build, as
-    /// RATIO,PASSES (the share of its nodes searched per pass, the passes;
-    /// default 0.1,4; "off": none).
+    /// RATIO,PASSES[,MAX] (the share of its nodes searched per pass, the
+    /// passes, at most MAX nodes per pass; default 0.3,3,4096; "off": none).
     #[arg(long)]
     reinsert: Option<String>,
     /// Reinsertion over every object (and flat) BVH after its build, as
-    /// RATIO,PASSES (default off).
+    /// RATIO,PASSES[,MAX] (default off).
     #[arg(long)]
     reinsert_objects: Option<String>,
     /// Two-level modes: trace the objects placed directly (not instanced,
@@ -327,19 +327,24 @@ impl SceneOpts {
     }
 }
 
-/// `RATIO,PASSES` or `off`.
+/// `RATIO,PASSES[,MAX]` or `off`.
 fn parse_reinsert(flag: &str, s: &str) -> anyhow::Result<ReinsertParams> {
     if s.trim() == "off" {
         return Ok(ReinsertParams::OFF);
     }
-    let parsed = s.split_once(',').and_then(|(r, p)| {
-        Some(ReinsertParams {
-            batch_ratio: r.trim().parse().ok()?,
-            passes: p.trim().parse().ok()?,
-        })
-    });
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let parsed = match parts[..] {
+        [r, p] | [r, p, _] => (|| {
+            Some(ReinsertParams {
+                batch_ratio: r.parse().ok()?,
+                passes: p.parse().ok()?,
+                max_batch: parts.get(2).map_or(Some(0), |m| m.parse().ok())?,
+            })
+        })(),
+        _ => None,
+    };
     let Some(params) = parsed else {
-        bail!("{flag}: '{s}' is not RATIO,PASSES (e.g. 0.1,4) or off");
+        bail!("{flag}: '{s}' is not RATIO,PASSES[,MAX] (e.g. 0.3,3,4096) or off");
     };
     params.check().with_context(|| format!("{flag}: '{s}'"))?;
     Ok(params)

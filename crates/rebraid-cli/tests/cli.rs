@@ -680,6 +680,8 @@ fn bad_arguments_exit_with_one_error_line() {
         e.contains("--reinsert") && e.contains("RATIO,PASSES"),
         "{e}"
     );
+    let e = fails(d, &["stats", "--reinsert", "0.1,2,x"]);
+    assert!(e.contains("RATIO,PASSES[,MAX]"), "{e}");
     let e = fails(d, &["stats", "--reinsert-objects", "1.5,2"]);
     assert!(
         e.contains("--reinsert-objects") && e.contains("ratio"),

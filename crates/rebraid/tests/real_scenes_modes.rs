@@ -163,10 +163,7 @@ fn run(file: &str) {
         (
             "reinsertion 1 x 8",
             RebraidParams {
-                reinsert: ReinsertParams {
-                    batch_ratio: 1.0,
-                    passes: 8,
-                },
+                reinsert: ReinsertParams::share(1.0, 8),
                 ..Default::default()
             },
         ),

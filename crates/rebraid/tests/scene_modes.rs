@@ -692,14 +692,8 @@ fn reinserted_trees_match_brute_force_in_every_mode() {
             kernel: Some(kernel),
             ..params(AccelMode::Flat)
         };
-        p.object_build.reinsert = rebraid::bvh::ReinsertParams {
-            batch_ratio: 0.5,
-            passes: 4,
-        };
-        p.rebraid.reinsert = rebraid::bvh::ReinsertParams {
-            batch_ratio: 1.0,
-            passes: 8,
-        };
+        p.object_build.reinsert = rebraid::bvh::ReinsertParams::share(0.5, 4);
+        p.rebraid.reinsert = rebraid::bvh::ReinsertParams::share(1.0, 8);
         p
     };
     let cases = [

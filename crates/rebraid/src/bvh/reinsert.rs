@@ -28,19 +28,22 @@ use crate::Error;
 
 /// How much reinsertion to do after a build: `passes` passes, each
 /// searching a new place for the `batch_ratio` share of the tree's nodes
-/// with the largest boxes (a pass that moves nothing ends the optimisation).
+/// with the largest boxes, but at most `max_batch` of them (a pass that
+/// moves nothing ends the optimisation).
 ///
 /// The search costs some 0.3 us per node searched on this project's
 /// machine (a walk to the root and a pruned descent at each ancestor; about
-/// 20 nodes visited per search on the shared scenes' top levels), so the
-/// cost is about `0.3 us * batch_ratio * passes * nodes`, spread over the
-/// build's threads.
+/// 20 nodes visited per search on the shared scenes' top levels, more in
+/// deeper trees), so the cost is about `0.3 us * passes * min(batch_ratio
+/// * nodes, max_batch)`, spread over the build's threads.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ReinsertParams {
     /// Nodes searched per pass, as a share of the tree's nodes (0 ..= 1).
     pub batch_ratio: f32,
     /// Passes; each searches from the tree the previous one left.
     pub passes: u32,
+    /// At most this many nodes searched per pass (0: no limit).
+    pub max_batch: u32,
 }
 
 impl ReinsertParams {
@@ -48,7 +51,17 @@ impl ReinsertParams {
     pub const OFF: Self = Self {
         batch_ratio: 0.0,
         passes: 0,
+        max_batch: 0,
     };
+
+    /// `passes` passes over the `batch_ratio` share of the nodes, unlimited.
+    pub const fn share(batch_ratio: f32, passes: u32) -> Self {
+        Self {
+            batch_ratio,
+            passes,
+            max_batch: 0,
+        }
+    }
 
     pub fn is_off(&self) -> bool {
         self.passes == 0 || self.batch_ratio <= 0.0
@@ -392,7 +405,10 @@ pub fn reinsert(nodes: &mut [BvhNode], params: &ReinsertParams) -> bool {
     let mut touched = vec![false; n];
     let mut log: Vec<Undo> = Vec::new();
     let batch = ((n - 1) as f32 * params.batch_ratio.min(1.0)) as usize;
-    let batch = batch.clamp(1, n - 1);
+    let mut batch = batch.clamp(1, n - 1);
+    if params.max_batch > 0 {
+        batch = batch.min(params.max_batch as usize);
+    }
     for _ in 0..params.passes {
         // The `batch` largest nodes (ties by index, for determinism): keys
         // `(!area bits, index)`, smallest first (areas are non-negative, so
@@ -569,16 +585,7 @@ mod tests {
         for (seed, max_leaf) in [(1, 1), (2, 4), (3, 8)] {
             let boxes = boxes(seed, 3000);
             let built = build(&boxes, max_leaf);
-            for params in [
-                ReinsertParams {
-                    batch_ratio: 0.1,
-                    passes: 4,
-                },
-                ReinsertParams {
-                    batch_ratio: 1.0,
-                    passes: 3,
-                },
-            ] {
+            for params in [ReinsertParams::share(0.1, 4), ReinsertParams::share(1.0, 3)] {
                 let mut bvh = built.clone();
                 assert!(bvh.reinsert(&params), "{seed} {params:?}: nothing moved");
                 bvh.validate(&boxes).unwrap();
@@ -591,14 +598,37 @@ mod tests {
         }
     }
 
+    /// `max_batch` bounds the nodes searched per pass, so the moves too.
+    #[test]
+    fn the_batch_limit_bounds_the_moves() {
+        let boxes = boxes(4, 3000);
+        let built = build(&boxes, 1);
+        let changed = |max_batch| {
+            let mut nodes = built.nodes.clone();
+            let params = ReinsertParams {
+                batch_ratio: 1.0,
+                passes: 3,
+                max_batch,
+            };
+            reinsert(&mut nodes, &params);
+            nodes
+                .iter()
+                .zip(&built.nodes)
+                .filter(|(a, b)| a != b)
+                .count()
+        };
+        // A pass searching 16 nodes makes at most 16 moves, each rewriting
+        // three slots and refitting the boxes on two paths to the root.
+        let (few, all) = (changed(16), changed(0));
+        assert!(few > 0 && few < all, "{few} slots changed, {all} unlimited");
+        assert!(few <= 3 * 16 * (3 + 2 * MAX_DEPTH as usize), "{few}");
+    }
+
     #[test]
     fn reinsertion_does_not_depend_on_the_thread_count() {
         let boxes = boxes(7, 5000);
         let built = build(&boxes, 2);
-        let params = ReinsertParams {
-            batch_ratio: 0.5,
-            passes: 3,
-        };
+        let params = ReinsertParams::share(0.5, 3);
         let run = |threads| {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
@@ -620,33 +650,17 @@ mod tests {
         let built = build(&boxes, 4);
         let mut bvh = built.clone();
         assert!(!bvh.reinsert(&ReinsertParams::OFF));
-        assert!(!bvh.reinsert(&ReinsertParams {
-            batch_ratio: 0.0,
-            passes: 8
-        }));
+        assert!(!bvh.reinsert(&ReinsertParams::share(0.0, 8)));
         assert_eq!(bvh, built);
         for n in [1, 2, 3] {
             let few = build(&boxes[..n], 1);
             let mut t = few.clone();
-            assert!(!t.reinsert(&ReinsertParams {
-                batch_ratio: 1.0,
-                passes: 4
-            }));
+            assert!(!t.reinsert(&ReinsertParams::share(1.0, 4)));
             assert_eq!(t, few);
         }
-        let bad = ReinsertParams {
-            batch_ratio: f32::NAN,
-            passes: 1,
-        };
+        let bad = ReinsertParams::share(f32::NAN, 1);
         assert!(bad.check().is_err());
-        assert!(
-            ReinsertParams {
-                batch_ratio: 0.5,
-                passes: 65
-            }
-            .check()
-            .is_err()
-        );
+        assert!(ReinsertParams::share(0.5, 65).check().is_err());
     }
 
     /// The undo log restores the tree bit for bit (the path taken when a
@@ -702,7 +716,7 @@ mod tests {
             let boxes = boxes(seed, n);
             let built = build(&boxes, leaf);
             let mut bvh = built.clone();
-            bvh.reinsert(&ReinsertParams { batch_ratio: ratio, passes });
+            bvh.reinsert(&ReinsertParams::share(ratio, passes));
             bvh.validate(&boxes).unwrap();
             check_tight(&bvh);
             // (The summed area is not checked here: a move priced on the

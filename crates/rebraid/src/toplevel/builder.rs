@@ -41,7 +41,11 @@
 //!   through instances are copied into it in world space
 //!   ([`RebraidParams::inline_instanced_leaves`]), so a re-braided ray
 //!   rarely enters an object at all (Embree's two-level traversal enters an
-//!   instance at every instance leaf).
+//!   instance at every instance leaf);
+//! - the binary top level is improved by reinsertion before it is laid out
+//!   ([`RebraidParams::reinsert`], `crate::bvh::reinsert`): a top-down
+//!   binned build over refs of very different sizes leaves subtrees that a
+//!   search over the finished tree can place better.
 //!
 //! Tried and rejected (figures from `rebraid stats`, SAH cost, on the shared
 //! scenes): an "SAH guard" that keeps an opening round only when the opened
@@ -365,19 +369,29 @@ pub struct RebraidParams {
     pub moving_split_max_share: f32,
     /// Reinsertion over the top level's binary tree after its build
     /// ([`crate::bvh::reinsert`]; Bittner et al. 2013, Meister and Bittner
-    /// 2018): subtrees the top-down binned build put in poor places,
-    /// mostly the refs that opening produced deep in a list, move to where
-    /// the summed area of the inner nodes is lowest. Ignored when `open`
-    /// is off (the plain two-level mode stays plain).
+    /// 2018): subtrees the top-down binned build left in poor places (the
+    /// greedy splits, refs opened deep in a list) move to where the summed
+    /// area of the inner nodes is lowest. Ignored when `open` is off (the
+    /// plain two-level mode stays plain). Default 0.3 x 3 passes, at most
+    /// 4,096 nodes per pass.
     ///
-    /// Measured (session 36; Embree's statistic of the traversed wide
-    /// layout, `rebraid stats`, and the search's time on one thread): at
-    /// 0.1 x 4 nexuiz 18.65 -> 17.89 (1.6 ms), samurai 11.26 -> 11.04
-    /// (1.5 ms), the cocoa temple 6.26 -> 6.01 (1.1 ms), the library at 3M
-    /// triangles 25.81 -> 24.52 (56 ms, of a 220 ms top level); 1 x 16
-    /// reaches 17.16, 10.38 and 5.95 for 40-50 ms. Wall time against
-    /// none (`tools/ab-wall.sh`, one thread): see docs/performance.md,
-    /// session 36. Default 0.1 x 4.
+    /// Measured (session 36). Embree's statistic of the traversed wide
+    /// layout (`rebraid stats`), none / 0.1 x 4 / 0.3 x 3 / 1 x 16: nexuiz
+    /// 18.65 / 17.89 / 17.83 / 17.16, samurai 11.26 / 11.04 / 10.71 /
+    /// 10.38, the cocoa temple 6.26 / 6.01 / 6.02 / 5.95; the searches on
+    /// one thread take 1.6 / 3.1 / 52 ms on nexuiz (10,731 top-level
+    /// nodes), and 0.1 x 4 uncapped took 67 ms of the library's (3M
+    /// triangles, 295,089 nodes) 215 ms top level, hence the cap. Wall
+    /// time, default against none (`tools/ab-wall.sh 5`, one thread,
+    /// 480x270, the control 0.98-1.03): diffuse rays +1.7% to +6.4% on the
+    /// six shared scenes and +16% on the library at 0.25, primary +0.4%
+    /// to +4.3% and +20%, shadow +2.7% to +14% but ravenbridge (0.995)
+    /// and the library, **0.64**: all its shadow rays are occluded and the
+    /// unmoved tree finds the occluder in the first leaf (1.00 leaves per
+    /// ray), the reinserted one after 1.34 (`rebraid stats library
+    /// --visits 240x135`); moving leaves only keeps that and loses the
+    /// rest, moving nothing within four levels of the root or no move onto
+    /// a large leaf changes neither. 0.1 x 4 cost nexuiz's primary rays 5%.
     pub reinsert: ReinsertParams,
 }
 
@@ -410,8 +424,9 @@ impl Default for RebraidParams {
             moving_hold_commits: 8,
             moving_split_max_share: 0.25,
             reinsert: ReinsertParams {
-                batch_ratio: 0.1,
-                passes: 4,
+                batch_ratio: 0.3,
+                passes: 3,
+                max_batch: 4096,
             },
         }
     }
