@@ -191,7 +191,32 @@ struct Tree<'a> {
     parents: Vec<u32>,
 }
 
-impl Tree<'_> {
+impl<'a> Tree<'a> {
+    fn new(nodes: &'a mut [BvhNode]) -> Self {
+        let mut parents = vec![0u32; nodes.len()];
+        for (i, node) in nodes.iter().enumerate() {
+            if !node.is_leaf() {
+                parents[node.index as usize] = i as u32;
+                parents[node.index as usize + 1] = i as u32;
+            }
+        }
+        Self { nodes, parents }
+    }
+
+    /// Node `i`'s box made the union of its children's (leaves unchanged).
+    fn refit_node(&mut self, i: usize) {
+        let n = self.nodes[i];
+        if !n.is_leaf() {
+            let c = n.index as usize;
+            let (l, r) = (self.nodes[c], self.nodes[c + 1]);
+            let node = &mut self.nodes[i];
+            for a in 0..3 {
+                node.min[a] = l.min[a].min(r.min[a]);
+                node.max[a] = l.max[a].max(r.max[a]);
+            }
+        }
+    }
+
     #[inline(always)]
     fn area(&self, i: u32) -> f32 {
         SearchBox::of(&self.nodes[i as usize]).half_area()
@@ -339,16 +364,7 @@ impl Tree<'_> {
 
     fn refit_up(&mut self, mut i: u32) {
         loop {
-            let n = self.nodes[i as usize];
-            if !n.is_leaf() {
-                let c = n.index as usize;
-                let (l, r) = (self.nodes[c], self.nodes[c + 1]);
-                let node = &mut self.nodes[i as usize];
-                for a in 0..3 {
-                    node.min[a] = l.min[a].min(r.min[a]);
-                    node.max[a] = l.max[a].max(r.max[a]);
-                }
-            }
+            self.refit_node(i as usize);
             if i == 0 {
                 break;
             }
@@ -368,16 +384,7 @@ impl Tree<'_> {
             }
         }
         for i in (0..self.nodes.len()).rev() {
-            let n = self.nodes[i];
-            if !n.is_leaf() {
-                let c = n.index as usize;
-                let (l, r) = (self.nodes[c], self.nodes[c + 1]);
-                let node = &mut self.nodes[i];
-                for a in 0..3 {
-                    node.min[a] = l.min[a].min(r.min[a]);
-                    node.max[a] = l.max[a].max(r.max[a]);
-                }
-            }
+            self.refit_node(i);
         }
     }
 }
@@ -392,14 +399,7 @@ pub fn reinsert(nodes: &mut [BvhNode], params: &ReinsertParams) -> bool {
         return false;
     }
     let n = nodes.len();
-    let mut parents = vec![0u32; n];
-    for (i, node) in nodes.iter().enumerate() {
-        if !node.is_leaf() {
-            parents[node.index as usize] = i as u32;
-            parents[node.index as usize + 1] = i as u32;
-        }
-    }
-    let mut tree = Tree { nodes, parents };
+    let mut tree = Tree::new(nodes);
     let mut order: Vec<u32> = Vec::new();
     let mut keys: Vec<u64> = Vec::new();
     let mut touched = vec![false; n];
@@ -671,17 +671,7 @@ mod tests {
         let built = build(&boxes, 2);
         let mut nodes = built.nodes.clone();
         let n = nodes.len();
-        let mut parents = vec![0u32; n];
-        for (i, node) in nodes.iter().enumerate() {
-            if !node.is_leaf() {
-                parents[node.index as usize] = i as u32;
-                parents[node.index as usize + 1] = i as u32;
-            }
-        }
-        let mut tree = Tree {
-            nodes: &mut nodes,
-            parents,
-        };
+        let mut tree = Tree::new(&mut nodes);
         let mut log = Vec::new();
         let mut stack = Vec::new();
         for from in 1..n as u32 {
