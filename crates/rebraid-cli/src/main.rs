@@ -333,16 +333,19 @@ fn parse_reinsert(flag: &str, s: &str) -> anyhow::Result<ReinsertParams> {
         return Ok(ReinsertParams::OFF);
     }
     let parts: Vec<&str> = s.split(',').map(str::trim).collect();
-    let parsed = match parts[..] {
-        [r, p] | [r, p, _] => (|| {
-            Some(ReinsertParams {
-                batch_ratio: r.parse().ok()?,
-                passes: p.parse().ok()?,
-                max_batch: parts.get(2).map_or(Some(0), |m| m.parse().ok())?,
-            })
-        })(),
-        _ => None,
+    let parsed = || {
+        let (r, p, m) = match parts[..] {
+            [r, p] => (r, p, "0"),
+            [r, p, m] => (r, p, m),
+            _ => return None,
+        };
+        Some(ReinsertParams {
+            batch_ratio: r.parse().ok()?,
+            passes: p.parse().ok()?,
+            max_batch: m.parse().ok()?,
+        })
     };
+    let parsed = parsed();
     let Some(params) = parsed else {
         bail!("{flag}: '{s}' is not RATIO,PASSES[,MAX] (e.g. 0.3,3,4096) or off");
     };

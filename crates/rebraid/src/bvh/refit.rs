@@ -86,40 +86,52 @@ impl MeshBvh {
             nodes.iter_mut().for_each(leaf_box);
         }
 
-        // Inner boxes bottom-up.
-        let children_after_parent = nodes
-            .iter()
-            .enumerate()
-            .all(|(i, n)| n.is_leaf() || n.index as usize > i);
-        if children_after_parent {
-            for i in (0..nodes.len()).rev() {
-                let n = nodes[i];
-                if !n.is_leaf() {
-                    let c = n.index as usize;
-                    let b = nodes[c].bounds().union(nodes[c + 1].bounds());
-                    set_bounds(&mut nodes[i], &b);
-                }
+        refit_inner(nodes);
+        Ok(())
+    }
+}
+
+/// Node `i`'s box made the union of its children's (a leaf is left as it
+/// is).
+#[inline]
+pub(crate) fn refit_node(nodes: &mut [BvhNode], i: usize) {
+    let n = nodes[i];
+    if !n.is_leaf() {
+        let c = n.index as usize;
+        let b = nodes[c].bounds().union(nodes[c + 1].bounds());
+        set_bounds(&mut nodes[i], &b);
+    }
+}
+
+/// Every inner box made the union of its children's, bottom-up: one
+/// backward sweep when children come after their parents (every builder's
+/// layout), a post-order walk otherwise.
+pub(crate) fn refit_inner(nodes: &mut [BvhNode]) {
+    let children_after_parent = nodes
+        .iter()
+        .enumerate()
+        .all(|(i, n)| n.is_leaf() || n.index as usize > i);
+    if children_after_parent {
+        for i in (0..nodes.len()).rev() {
+            refit_node(nodes, i);
+        }
+    } else if !nodes.is_empty() {
+        // Post-order walk: (node, children done).
+        let mut stack = vec![(0usize, false)];
+        while let Some((i, done)) = stack.pop() {
+            let n = nodes[i];
+            if n.is_leaf() {
+                continue;
             }
-        } else {
-            // Post-order walk: (node, children done).
-            let mut stack = vec![(0usize, false)];
-            while let Some((i, done)) = stack.pop() {
-                let n = nodes[i];
-                if n.is_leaf() {
-                    continue;
-                }
-                let c = n.index as usize;
-                if done {
-                    let b = nodes[c].bounds().union(nodes[c + 1].bounds());
-                    set_bounds(&mut nodes[i], &b);
-                } else {
-                    stack.push((i, true));
-                    stack.push((c, false));
-                    stack.push((c + 1, false));
-                }
+            let c = n.index as usize;
+            if done {
+                refit_node(nodes, i);
+            } else {
+                stack.push((i, true));
+                stack.push((c, false));
+                stack.push((c + 1, false));
             }
         }
-        Ok(())
     }
 }
 

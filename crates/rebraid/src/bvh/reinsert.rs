@@ -23,7 +23,8 @@
 
 use rayon::prelude::*;
 
-use super::{Bvh, BvhNode, MAX_DEPTH};
+use super::refit::{refit_inner, refit_node};
+use super::{Bvh, BvhNode, MAX_DEPTH, compact_slots};
 use crate::Error;
 
 /// How much reinsertion to do after a build: `passes` passes, each
@@ -203,20 +204,6 @@ impl<'a> Tree<'a> {
         Self { nodes, parents }
     }
 
-    /// Node `i`'s box made the union of its children's (leaves unchanged).
-    fn refit_node(&mut self, i: usize) {
-        let n = self.nodes[i];
-        if !n.is_leaf() {
-            let c = n.index as usize;
-            let (l, r) = (self.nodes[c], self.nodes[c + 1]);
-            let node = &mut self.nodes[i];
-            for a in 0..3 {
-                node.min[a] = l.min[a].min(r.min[a]);
-                node.max[a] = l.max[a].max(r.max[a]);
-            }
-        }
-    }
-
     #[inline(always)]
     fn area(&self, i: u32) -> f32 {
         SearchBox::of(&self.nodes[i as usize]).half_area()
@@ -364,7 +351,7 @@ impl<'a> Tree<'a> {
 
     fn refit_up(&mut self, mut i: u32) {
         loop {
-            self.refit_node(i as usize);
+            refit_node(self.nodes, i as usize);
             if i == 0 {
                 break;
             }
@@ -383,9 +370,7 @@ impl<'a> Tree<'a> {
                 self.nodes[i as usize] = n;
             }
         }
-        for i in (0..self.nodes.len()).rev() {
-            self.refit_node(i);
-        }
+        refit_inner(self.nodes);
     }
 }
 
@@ -478,30 +463,18 @@ impl Bvh {
     }
 }
 
-/// Lay `nodes` out in depth-first pair order again (each node's children
-/// pair placed when the node is visited, left subtree first, as the
-/// builders lay trees out), and the leaves' ranges in that order: returns,
-/// for each new primitive position, the old one (`new[k] = old[map[k]]`).
-pub fn reorder_depth_first(nodes: &mut [BvhNode]) -> Vec<u32> {
-    let old = nodes.to_vec();
+/// Lay `nodes` out in depth-first pair order again (as the builders lay
+/// trees out, `compact_slots`), and the leaves' ranges in that order:
+/// returns, for each new primitive position, the old one (`new[k] =
+/// old[map[k]]`).
+pub fn reorder_depth_first(nodes: &mut Vec<BvhNode>) -> Vec<u32> {
+    let old = std::mem::take(nodes);
     let mut map = Vec::new();
-    let mut next = 1;
-    let mut stack = vec![(0usize, 0usize)];
-    while let Some((from, to)) = stack.pop() {
-        let mut n = old[from];
-        if n.is_leaf() {
-            let first = map.len() as u32;
-            map.extend(n.prim_range().map(|p| p as u32));
-            n.index = first;
-        } else {
-            let c = n.index as usize;
-            n.index = next as u32;
-            stack.push((c + 1, next + 1));
-            stack.push((c, next));
-            next += 2;
-        }
-        nodes[to] = n;
-    }
+    compact_slots(&old, nodes, |leaf| {
+        let first = map.len() as u32;
+        map.extend(leaf.prim_range().map(|p| p as u32));
+        leaf.index = first;
+    });
     map
 }
 
