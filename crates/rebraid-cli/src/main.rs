@@ -7,7 +7,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use rebraid::bvh::ReinsertParams;
+use rebraid::bvh::{Collapse, ReinsertParams};
 use rebraid::{AccelMode, RefBudget, Scene, SceneParams};
 use rebraid_cli::animate;
 use rebraid_cli::bench::{
@@ -150,6 +150,17 @@ struct SceneOpts {
     /// triangles are at most this share of the others'.
     #[arg(long)]
     moving_split_max_share: Option<f32>,
+    /// How every binary BVH (objects, flat, the top level) becomes the
+    /// 8-wide one traversal walks: the SAH-optimal choice of wide nodes, or
+    /// Embree's greedy rule (the largest child opened first).
+    #[arg(long, value_enum, default_value_t = CollapseArg::Optimal)]
+    collapse: CollapseArg,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum CollapseArg {
+    Optimal,
+    Greedy,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -237,6 +248,12 @@ impl SceneOpts {
         if let Some(s) = self.moving_split_max_share {
             r.moving_split_max_share = s;
         }
+        let collapse = match self.collapse {
+            CollapseArg::Optimal => Collapse::SahOptimal,
+            CollapseArg::Greedy => Collapse::Greedy,
+        };
+        p.object_build.collapse = collapse;
+        r.collapse = collapse;
         p.object_build.check()?;
         r.check()?;
         Ok(p)
@@ -253,6 +270,7 @@ impl SceneOpts {
             format!("--seed={}", self.seed),
             format!("--split={}", name(self.split.to_possible_value())),
             format!("--up={}", name(self.up.to_possible_value())),
+            format!("--collapse={}", name(self.collapse.to_possible_value())),
         ];
         let flags = [
             ("--flatten-instances", self.flatten_instances),

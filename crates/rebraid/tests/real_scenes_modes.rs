@@ -167,6 +167,13 @@ fn run(file: &str) {
                 ..Default::default()
             },
         ),
+        (
+            "greedy top-level collapse",
+            RebraidParams {
+                collapse: rebraid::bvh::Collapse::Greedy,
+                ..Default::default()
+            },
+        ),
     ] {
         scene.params.rebraid = rebraid;
         scene.set_mode(AccelMode::Rebraided);

@@ -725,6 +725,55 @@ fn reinserted_trees_match_brute_force_in_every_mode() {
     }
 }
 
+/// Embree's greedy collapse (`Collapse::Greedy`) for every object, flat and
+/// top-level tree, with every kernel: the same answers as the brute force;
+/// and the default, SAH-optimal collapse gives each mode a wide SAH cost no
+/// higher than the greedy one.
+#[test]
+fn both_collapse_rules_match_brute_force_in_every_mode() {
+    use rebraid::bvh::Collapse;
+    let collapsed = |kernel, collapse| {
+        let mut p = SceneParams {
+            kernel: Some(kernel),
+            ..params(AccelMode::Flat)
+        };
+        p.object_build.collapse = collapse;
+        p.rebraid.collapse = collapse;
+        p
+    };
+    let cases = [
+        (
+            random_model(&mut rng(960), &clustered_with_instances()),
+            "clustered",
+        ),
+        (library_model(961, 16, 200, 4), "library+instances"),
+    ];
+    for (model, what) in &cases {
+        let world = model.world();
+        let mut rays = random_rays(&mut rng(962), &world, 1200, SCENE_LO, SCENE_HI);
+        rays.extend(camera_rays(Vec3::new(9.3, 30.0, 11.1), 8.0));
+        for kernel in rebraid::bvh::Kernel::available() {
+            let what = format!("greedy collapse, {what} {kernel:?}");
+            all_modes_vs_brute_with(model, &rays, &what, collapsed(kernel, Collapse::Greedy));
+        }
+        let wide_sah = |collapse, mode| {
+            let mut scene = model.to_scene(collapsed(rebraid::bvh::Kernel::best(), collapse));
+            scene.set_mode(mode);
+            scene.commit().unwrap();
+            scene.stats().wide_sah_cost
+        };
+        for mode in [AccelMode::Flat, AccelMode::TwoLevel, AccelMode::Rebraided] {
+            let greedy = wide_sah(Collapse::Greedy, mode);
+            let optimal = wide_sah(Collapse::SahOptimal, mode);
+            assert!(
+                optimal <= greedy * (1.0 + 1e-6),
+                "{what} {mode:?}: wide SAH optimal {optimal} above greedy {greedy}"
+            );
+            eprintln!("{what} {mode:?}: wide SAH greedy {greedy:.3}, optimal {optimal:.3}");
+        }
+    }
+}
+
 /// `SceneParams::merge_placed`: the objects placed directly traced from one
 /// BVH over all their triangles. Random scenes (objects placed and also
 /// instanced, which stay out, prototypes, mirrored instances), the library

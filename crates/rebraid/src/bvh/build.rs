@@ -32,7 +32,7 @@ use super::binning::{
     BinBox, BinMapping, BinRange, Bins, MAX_BINS, SplitCandidate, finite_lanes, with_bins,
 };
 use super::reinsert::ReinsertParams;
-use super::{Bvh, BvhNode};
+use super::{Bvh, BvhNode, Collapse};
 use crate::{Aabb, Error};
 
 /// Depth from which the builder stops using the SAH and splits at the object
@@ -81,6 +81,10 @@ pub struct BuildParams {
     /// top level it changed the traversed statistic by -1% to +0.4%
     /// (docs/performance.md, session 36).
     pub reinsert: ReinsertParams,
+    /// How the binary tree becomes the 8-wide one traversal walks
+    /// ([`super::collapse`]): by default the SAH-optimal choice of wide
+    /// nodes.
+    pub collapse: Collapse,
 }
 
 impl Default for BuildParams {
@@ -93,6 +97,7 @@ impl Default for BuildParams {
             leaf_block_size: 4,
             parallel_threshold: 1024,
             reinsert: ReinsertParams::OFF,
+            collapse: Collapse::default(),
         }
     }
 }

@@ -2,6 +2,7 @@
 
 pub mod binning;
 mod build;
+pub mod collapse;
 mod node;
 pub mod occlusion_order;
 #[cfg(target_arch = "x86_64")]
@@ -18,6 +19,7 @@ pub mod wide;
 pub use binning::BinBox;
 pub use build::{BuildParams, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh, build_bvh_aligned};
 pub(crate) use build::{compact_slots, split_slots};
+pub use collapse::Collapse;
 pub use node::BvhNode;
 pub use reinsert::ReinsertParams;
 pub use simd::{

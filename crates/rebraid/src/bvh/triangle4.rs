@@ -624,7 +624,15 @@ impl WideTriangleBvh {
     /// Collapse the mesh's binary tree and pack its leaves; fails when a
     /// binary leaf is too large for the wide layout.
     pub fn from_mesh(mesh: &crate::MeshBvh) -> Result<Self, crate::Error> {
-        let mut wide = WideBvh::from_bvh(&mesh.bvh)?;
+        Self::from_mesh_with(mesh, super::Collapse::default())
+    }
+
+    /// [`WideTriangleBvh::from_mesh`] by the collapse rule `collapse`.
+    pub fn from_mesh_with(
+        mesh: &crate::MeshBvh,
+        collapse: super::Collapse,
+    ) -> Result<Self, crate::Error> {
+        let mut wide = WideBvh::from_bvh_with(&mesh.bvh, collapse)?;
         let (blocks, block_misses) =
             pack_triangle4_with_misses(&mut wide, &mesh.triangles, &mesh.bvh.prim_indices);
         let occlusion = order_for_occlusion(&mut wide, |r, _| leaf_occlusion(&block_misses, r));

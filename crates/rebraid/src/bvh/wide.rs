@@ -6,12 +6,14 @@
 //! RT 2008; H. Dammertz, J. Hanika, A. Keller, "Shallow Bounding Volume
 //! Hierarchies for Fast SIMD Ray Tracing of Incoherent Rays", EGSR 2008).
 //! As in Embree's BVH4/BVH8, they are not built directly but collapsed from
-//! a binary SAH tree: starting from a node's two children, the inner child
-//! with the largest surface area is repeatedly replaced by its own two
-//! children until the node has `W` children or only leaves remain. Opening
-//! the largest box first removes the box most likely to be hit (the SAH's
-//! hit probability is proportional to area), so the collapse keeps the
-//! binary tree's SAH ordering while cutting its depth by about `log2(W)`.
+//! a binary SAH tree: each binary inner node either becomes a wide node or
+//! is opened, its children taking slots of the wide node above. Which ones
+//! stay is [`Collapse`]'s choice: by default the set of least summed area,
+//! the SAH-optimal collapse ([`super::collapse`]); [`Collapse::Greedy`]
+//! instead replaces the inner child of largest area by its two children
+//! until the node has `W` children or only leaves remain, as Embree does.
+//! Either way the wide tree keeps the binary tree's leaves and slot order
+//! and is about `log2(W)` times shallower.
 //!
 //! Leaves keep the binary tree's leaf ranges, so they index the binary
 //! tree's primitive order (a [`crate::MeshBvh`]'s leaf-order triangles)
@@ -19,7 +21,8 @@
 
 use glam::Vec3;
 
-use super::{Bvh, MAX_DEPTH};
+use super::collapse::CollapsePlan;
+use super::{Bvh, Collapse, MAX_DEPTH};
 use crate::{Aabb, Error};
 
 /// Flag bit of a child reference that is a leaf.
@@ -169,8 +172,13 @@ impl<const W: usize> WideBvh<W> {
     /// holds more than [`WIDE_MAX_LEAF_COUNT`] primitives or the tree more
     /// than [`WIDE_MAX_PRIMITIVES`].
     pub fn from_bvh(bvh: &Bvh) -> Result<Self, Error> {
+        Self::from_bvh_with(bvh, Collapse::default())
+    }
+
+    /// [`WideBvh::from_bvh`] by the rule `collapse`.
+    pub fn from_bvh_with(bvh: &Bvh, collapse: Collapse) -> Result<Self, Error> {
         let mut out = Self::default();
-        out.collapse_from(bvh)?;
+        out.collapse_from_with(bvh, collapse)?;
         Ok(out)
     }
 
@@ -178,6 +186,11 @@ impl<const W: usize> WideBvh<W> {
     /// (a top level rebuilt every frame collapses into the previous frame's
     /// arrays instead of fresh pages). On error the tree is left empty.
     pub fn collapse_from(&mut self, bvh: &Bvh) -> Result<(), Error> {
+        self.collapse_from_with(bvh, Collapse::default())
+    }
+
+    /// [`WideBvh::collapse_from`] by the rule `collapse`.
+    pub fn collapse_from_with(&mut self, bvh: &Bvh, collapse: Collapse) -> Result<(), Error> {
         let () = Self::WIDTH_OK;
         self.nodes.clear();
         self.binary_of.clear();
@@ -220,16 +233,19 @@ impl<const W: usize> WideBvh<W> {
             };
             (k, a)
         };
+        let plan = (collapse == Collapse::SahOptimal).then(|| CollapsePlan::<W>::new(bin));
         while let Some((b, w)) = work.pop() {
             kids.clear();
             if bin[b].is_leaf() {
                 // Only a leaf root gets here: one leaf child.
                 kids.push(candidate(b));
+            } else if let Some(plan) = &plan {
+                plan.slots(bin, b, |k| kids.push(candidate(k)));
             } else {
                 let c = bin[b].index as usize;
                 kids.extend([candidate(c), candidate(c + 1)]);
             }
-            while kids.len() < W {
+            while plan.is_none() && kids.len() < W {
                 // The inner child of largest area (first of equals); areas
                 // may be infinite for huge boxes, never NaN for valid ones.
                 let mut best: Option<(usize, f32)> = None;

@@ -60,7 +60,7 @@ impl FlatAccel {
             }));
         }
         let bvh = MeshBvh::build(&mesh, params)?;
-        let wide = WideTriangleBvh::from_mesh(&bvh).ok();
+        let wide = WideTriangleBvh::from_mesh_with(&bvh, params.collapse).ok();
         Ok(Self {
             bvh,
             wide,

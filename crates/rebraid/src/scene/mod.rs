@@ -233,7 +233,7 @@ impl Merged {
         let bvh = MeshBvh::build(&mesh, params)?;
         Ok(Self {
             members,
-            bvh: Arc::new(ObjectBvh::new(bvh)),
+            bvh: Arc::new(ObjectBvh::with_collapse(bvh, params.collapse)),
             origins: origins.into(),
         })
     }
@@ -906,12 +906,13 @@ impl Scene {
                                 // A failure (vertices moved to infinity by a huge
                                 // scale): the instance stays one.
                                 let bvh = MeshBvh::build_transformed(&o.mesh, xf, params).ok()?;
-                                Some((inst, ObjectBvh::new(bvh)))
+                                Some((inst, ObjectBvh::with_collapse(bvh, params.collapse)))
                             });
                             let b: Built = match baked {
                                 Some((inst, bvh)) => (i, bake, Some(inst), Ok(bvh)),
                                 None => {
-                                    let r = MeshBvh::build(&o.mesh, params).map(ObjectBvh::new);
+                                    let r = MeshBvh::build(&o.mesh, params)
+                                        .map(|b| ObjectBvh::with_collapse(b, params.collapse));
                                     (i, bake, None, r)
                                 }
                             };
@@ -1363,6 +1364,7 @@ impl Scene {
                     0
                 },
                 graft_budget: params.graft_budget,
+                collapse: params.collapse,
                 graft_share_per_prim: params.graft_share_per_prim,
                 graft_whole,
             },

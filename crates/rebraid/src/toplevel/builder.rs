@@ -69,7 +69,7 @@ use crate::bvh::binning::{
 };
 use crate::bvh::reinsert::{ReinsertParams, reinsert, reorder_depth_first};
 use crate::bvh::wide::WIDE_EMPTY;
-use crate::bvh::{Bvh, BvhNode, MEDIAN_FROM_DEPTH, compact_slots, split_slots};
+use crate::bvh::{Bvh, BvhNode, Collapse, MEDIAN_FROM_DEPTH, compact_slots, split_slots};
 use crate::{Aabb, Error, INVALID_ID};
 
 /// How many ref slots the build may use in all.
@@ -393,6 +393,10 @@ pub struct RebraidParams {
     /// rest, moving nothing within four levels of the root or no move onto
     /// a large leaf changes neither. 0.1 x 4 cost nexuiz's primary rays 5%.
     pub reinsert: ReinsertParams,
+    /// How the top level's binary tree becomes the 8-wide one traversal
+    /// walks ([`crate::bvh::collapse`]); by default the SAH-optimal choice
+    /// of wide nodes, as for the objects ([`crate::bvh::BuildParams::collapse`]).
+    pub collapse: Collapse,
 }
 
 impl Default for RebraidParams {
@@ -428,6 +432,7 @@ impl Default for RebraidParams {
                 passes: 3,
                 max_batch: 4096,
             },
+            collapse: Collapse::default(),
         }
     }
 }

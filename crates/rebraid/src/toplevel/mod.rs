@@ -21,9 +21,9 @@ use crate::bvh::triangle4::{
 };
 use crate::bvh::wide::{WIDE_EMPTY, WIDE_MAX_PRIMITIVES, decode_leaf, encode_leaf, is_leaf_ref};
 use crate::bvh::{
-    BoxRay, BoxTester, Bvh, BvhNode, Kernel, MAX_DEPTH, SahCosts, TRAVERSAL_STACK, TesterFactory,
-    TraversalCounters, WideBvh, WideNode, WideQuery, WideTriangleBvh, intersect_many,
-    occluded_many, subtree_with, traverse_with, with_kernel,
+    BoxRay, BoxTester, Bvh, BvhNode, Collapse, Kernel, MAX_DEPTH, SahCosts, TRAVERSAL_STACK,
+    TesterFactory, TraversalCounters, WideBvh, WideNode, WideQuery, WideTriangleBvh,
+    intersect_many, occluded_many, subtree_with, traverse_with, with_kernel,
 };
 use crate::transform::{transform_box, transform_normal};
 use crate::triangle::WatertightRay;
@@ -49,10 +49,19 @@ pub struct ObjectBvh {
     /// For each binary node, the wide node collapsed from it (inner nodes),
     /// the wide leaf reference naming its blocks (leaves), or `WIDE_EMPTY`.
     pub wide_of: Vec<u32>,
+    /// The rule `wide` was collapsed by (again after a refit).
+    pub collapse: Collapse,
 }
 
 impl ObjectBvh {
+    /// The object over `mesh`, collapsed by the default rule.
     pub fn new(mesh: MeshBvh) -> Self {
+        Self::with_collapse(mesh, Collapse::default())
+    }
+
+    /// The object over `mesh`, its wide layout collapsed by `collapse`
+    /// ([`crate::bvh::BuildParams::collapse`]).
+    pub fn with_collapse(mesh: MeshBvh, collapse: Collapse) -> Self {
         let n = mesh.bvh.nodes.len();
         let mut o = Self {
             mesh,
@@ -60,6 +69,7 @@ impl ObjectBvh {
             subtree_cost: vec![0.0; n],
             wide: None,
             wide_of: Vec::new(),
+            collapse,
         };
         o.update_counts_and_costs();
         o.collapse_wide();
@@ -69,7 +79,7 @@ impl ObjectBvh {
     /// (Re)collapse the 8-wide traversal layout from the binary tree; none
     /// when a binary leaf is too large for it (traversal stays binary then).
     fn collapse_wide(&mut self) {
-        self.wide = WideTriangleBvh::from_mesh(&self.mesh).ok();
+        self.wide = WideTriangleBvh::from_mesh_with(&self.mesh, self.collapse).ok();
         self.wide_of = match &self.wide {
             Some(w) => {
                 let mut map = w.wide.wide_of_binary(self.mesh.bvh.nodes.len());
@@ -474,6 +484,8 @@ pub struct TopLevelLayout {
     /// 1,271.0), and the graft serves a merged BVH beside other objects or
     /// instances.
     pub graft_whole: Option<u32>,
+    /// See [`RebraidParams::collapse`].
+    pub collapse: Collapse,
 }
 
 /// The object slot that every ref names, placed directly, when it has a
@@ -1780,7 +1792,7 @@ impl TopLevelAccel {
             block_normal_scale,
         } = buffers;
         let mut wide = wide_buffer
-            .collapse_from(&tree)
+            .collapse_from_with(&tree, layout.collapse)
             .ok()
             .map(|()| wide_buffer)
             .filter(|w| !w.is_empty());
