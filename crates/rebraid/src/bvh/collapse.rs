@@ -12,7 +12,7 @@
 //! nodes whose children are all leaves with few slots filled, and the
 //! slots it spends at the top are not the ones that save the most area.
 //!
-//! [`CollapsePlan`] minimises the summed area exactly by dynamic
+//! `CollapsePlan` minimises the summed area exactly by dynamic
 //! programming over the binary tree (Ylitie, Karras, Laine, "Efficient
 //! Incoherent Ray Traversal on GPUs Through Compressed Wide BVHs", HPG 2017,
 //! section 3.1, without their leaf merging: our leaves stay the binary
@@ -46,10 +46,10 @@
 //! cocoa +2.2%, openarena +1.2%, ravenbridge -1.8%; primary -4.2% (the
 //! engine) to +8.5% (the library); shadow -7.2% (openarena, whose shadow
 //! rays visit 4.36 -> 5.77 inner nodes at 240x135: the deeper tree puts
-//! the occluders farther down) to +6.8%. Builds 0-5% slower on one thread
-//! (the plan costs about as much as the greedy collapse it replaces: 18
-//! against 9 ms for both over the library at 1M triangles' 376K binary
-//! nodes).
+//! the occluders farther down) to +6.8%. Builds 0-5% slower on one thread:
+//! the plan and the collapse by it take about twice the greedy collapse's
+//! time (18 against 9 ms over the 376K binary nodes of the library at 1M
+//! triangles as one tree).
 
 use super::BvhNode;
 
@@ -59,7 +59,7 @@ pub enum Collapse {
     /// Open the inner child of largest area until the node has `W`
     /// children or only leaves remain (Embree's BVH4/BVH8 builders).
     Greedy,
-    /// The choice of least summed area ([`CollapsePlan`], module docs).
+    /// The choice of least summed area (`CollapsePlan`, module docs).
     #[default]
     SahOptimal,
 }
