@@ -573,6 +573,28 @@ fn stats_library_json() {
     assert!(top_off > sah(2), "{top_off} without, {} with", sah(2));
     let [flat_on, _] = with(&["--reinsert-objects", "0.2,3"]);
     assert!(flat_on < sah(0), "{flat_on} with, {} without", sah(0));
+    // Embree's greedy collapse: wide trees of a higher statistic (the
+    // default is the SAH-optimal collapse); the flat binary tree is the
+    // same, the re-braided one not (opening follows the objects' wide nodes).
+    let json = dir.path().join("g.json");
+    let a = [
+        "stats",
+        "library",
+        "--scale",
+        "0.02",
+        "--collapse",
+        "greedy",
+        "--json",
+        s(&json),
+    ];
+    ok(dir.path(), &a);
+    let g: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let greedy = g["modes"].as_array().unwrap();
+    for i in [0, 2] {
+        let (gw, ow) = (greedy[i]["wide_sah_cost"].as_f64().unwrap(), wide_sah(i));
+        assert!(gw > ow, "mode {i}: greedy {gw}, optimal {ow}");
+    }
+    assert_eq!(greedy[0]["sah_cost"].as_f64().unwrap(), sah(0));
 }
 
 #[test]
@@ -682,6 +704,14 @@ fn bad_arguments_exit_with_one_error_line() {
     );
     let e = fails(d, &["stats", "--reinsert", "0.1,2,x"]);
     assert!(e.contains("RATIO,PASSES[,MAX]"), "{e}");
+    // A value clap rejects: its own message, which lists the values.
+    let out = run_in(d, &["stats", "--collapse", "best"]);
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{e}");
+    assert!(
+        e.starts_with("error: ") && e.contains("--collapse") && e.contains("greedy"),
+        "{e}"
+    );
     let e = fails(d, &["stats", "--reinsert-objects", "1.5,2"]);
     assert!(
         e.contains("--reinsert-objects") && e.contains("ratio"),
