@@ -11,6 +11,8 @@ mod refit;
 pub mod reinsert;
 pub mod simd;
 mod stats;
+#[cfg(test)]
+mod test_trees;
 mod traverse;
 pub mod triangle4;
 mod validate;

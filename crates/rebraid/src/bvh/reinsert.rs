@@ -480,40 +480,10 @@ pub fn reorder_depth_first(nodes: &mut Vec<BvhNode>) -> Vec<u32> {
 
 #[cfg(test)]
 mod tests {
-    use glam::Vec3;
     use proptest::prelude::*;
 
     use super::*;
-    use crate::Aabb;
-    use crate::bvh::{BuildParams, build_bvh};
-
-    /// Boxes of random size scattered in a cube, with clusters and a few
-    /// large ones (what a top level over opened refs looks like).
-    fn boxes(seed: u32, n: usize) -> Vec<Aabb> {
-        let mut rng = seed | 1;
-        let mut next = || {
-            rng ^= rng << 13;
-            rng ^= rng >> 17;
-            rng ^= rng << 5;
-            rng as f32 / u32::MAX as f32
-        };
-        (0..n)
-            .map(|i| {
-                let c = Vec3::new(next(), next(), next()) * 100.0;
-                let size = if i % 37 == 0 { 40.0 } else { 3.0 };
-                Aabb::new(c, c + Vec3::new(next(), next(), next()) * size)
-            })
-            .collect()
-    }
-
-    fn build(boxes: &[Aabb], max_leaf: u32) -> Bvh {
-        let centroids: Vec<Vec3> = boxes.iter().map(|b| b.center()).collect();
-        let params = BuildParams {
-            max_leaf_size: max_leaf,
-            ..BuildParams::default()
-        };
-        build_bvh(boxes, &centroids, &params).unwrap()
-    }
+    use crate::bvh::test_trees::{build_over as build, scattered_boxes as boxes};
 
     fn inner_area(bvh: &Bvh) -> f64 {
         bvh.nodes
