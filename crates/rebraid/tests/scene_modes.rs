@@ -682,6 +682,25 @@ fn a_copied_object_leaf_counts_as_one_leaf() {
     assert_eq!((counted.inner_visited, counted.leaves_visited), (1, 1));
 }
 
+/// The scenes and rays the tree-shaping options (reinsertion, the collapse
+/// rule) are checked on: clustered random objects with instances and the
+/// library case with instances (seeds `seed`, `seed + 1`), random rays
+/// (`seed + 2`) and camera rays.
+fn tree_option_cases(seed: u64) -> [(Model, &'static str, Vec<Ray>); 2] {
+    let with_rays = |model: Model, what| {
+        let mut rays = random_rays(&mut rng(seed + 2), &model.world(), 1200, SCENE_LO, SCENE_HI);
+        rays.extend(camera_rays(Vec3::new(9.3, 30.0, 11.1), 8.0));
+        (model, what, rays)
+    };
+    [
+        with_rays(
+            random_model(&mut rng(seed), &clustered_with_instances()),
+            "clustered",
+        ),
+        with_rays(library_model(seed + 1, 16, 200, 4), "library+instances"),
+    ]
+}
+
 /// Reinsertion over every object and flat BVH (`BuildParams::reinsert`)
 /// and a heavy one over the re-braided top level, with every kernel: the
 /// trees change, the answers do not.
@@ -696,20 +715,10 @@ fn reinserted_trees_match_brute_force_in_every_mode() {
         p.rebraid.reinsert = rebraid::bvh::ReinsertParams::share(1.0, 8);
         p
     };
-    let cases = [
-        (
-            random_model(&mut rng(950), &clustered_with_instances()),
-            "clustered",
-        ),
-        (library_model(951, 16, 200, 4), "library+instances"),
-    ];
-    for (model, what) in &cases {
-        let world = model.world();
-        let mut rays = random_rays(&mut rng(952), &world, 1200, SCENE_LO, SCENE_HI);
-        rays.extend(camera_rays(Vec3::new(9.3, 30.0, 11.1), 8.0));
+    for (model, what, rays) in &tree_option_cases(950) {
         for kernel in rebraid::bvh::Kernel::available() {
             let what = format!("reinserted {what} {kernel:?}");
-            all_modes_vs_brute_with(model, &rays, &what, reinserted(kernel));
+            all_modes_vs_brute_with(model, rays, &what, reinserted(kernel));
         }
         // The option reaches the trees: the object trees' SAH is lower.
         let sah = |p: SceneParams| {
@@ -741,20 +750,10 @@ fn both_collapse_rules_match_brute_force_in_every_mode() {
         p.rebraid.collapse = collapse;
         p
     };
-    let cases = [
-        (
-            random_model(&mut rng(960), &clustered_with_instances()),
-            "clustered",
-        ),
-        (library_model(961, 16, 200, 4), "library+instances"),
-    ];
-    for (model, what) in &cases {
-        let world = model.world();
-        let mut rays = random_rays(&mut rng(962), &world, 1200, SCENE_LO, SCENE_HI);
-        rays.extend(camera_rays(Vec3::new(9.3, 30.0, 11.1), 8.0));
+    for (model, what, rays) in &tree_option_cases(960) {
         for kernel in rebraid::bvh::Kernel::available() {
             let what = format!("greedy collapse, {what} {kernel:?}");
-            all_modes_vs_brute_with(model, &rays, &what, collapsed(kernel, Collapse::Greedy));
+            all_modes_vs_brute_with(model, rays, &what, collapsed(kernel, Collapse::Greedy));
         }
         let wide_sah = |collapse, mode| {
             let mut scene = model.to_scene(collapsed(rebraid::bvh::Kernel::best(), collapse));

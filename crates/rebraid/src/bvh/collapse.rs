@@ -52,6 +52,7 @@
 //! triangles as one tree).
 
 use super::BvhNode;
+use super::node::bottom_up;
 
 /// How [`super::WideBvh`] chooses the binary nodes that become wide nodes.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -84,9 +85,7 @@ pub(crate) struct CollapsePlan<const W: usize> {
 }
 
 impl<const W: usize> CollapsePlan<W> {
-    /// Fill the rows bottom-up. Binary trees store children after their
-    /// parents (every builder here does), so a backward pass is bottom-up;
-    /// any other order gets an explicit post-order first.
+    /// Fill the rows bottom-up ([`super::node::bottom_up`]).
     pub(crate) fn new(bin: &[BvhNode]) -> Self {
         const {
             assert!(
@@ -100,27 +99,8 @@ impl<const W: usize> CollapsePlan<W> {
             open: 0,
         };
         let mut rows = vec![empty; bin.len()];
-        let children_after_parents = bin
-            .iter()
-            .enumerate()
-            .all(|(i, n)| n.is_leaf() || n.index as usize > i);
-        if children_after_parents {
-            for n in (0..bin.len()).rev() {
-                Self::fill(bin, &mut rows, n);
-            }
-        } else {
-            let mut order = Vec::with_capacity(bin.len());
-            let mut stack = vec![0usize];
-            while let Some(n) = stack.pop() {
-                order.push(n);
-                if !bin[n].is_leaf() {
-                    let c = bin[n].index as usize;
-                    stack.extend([c, c + 1]);
-                }
-            }
-            for &n in order.iter().rev() {
-                Self::fill(bin, &mut rows, n);
-            }
+        for n in bottom_up(bin) {
+            Self::fill(bin, &mut rows, n);
         }
         Self { rows }
     }

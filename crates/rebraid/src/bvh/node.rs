@@ -66,3 +66,85 @@ impl BvhNode {
         self.index as usize..(self.index + self.count) as usize
     }
 }
+
+/// The nodes of a binary tree (root 0), children before their parents:
+/// what a bottom-up pass (a refit, the collapse's plan) walks. Every builder
+/// here stores children after their parents, so that is one backward sweep
+/// over the indices, with no allocation; any other layout gets a reversed
+/// preorder (a parent precedes all its descendants in preorder).
+pub(crate) enum BottomUp {
+    Backward(std::ops::Range<usize>),
+    ReversedPreorder(std::iter::Rev<std::vec::IntoIter<usize>>),
+}
+
+impl Iterator for BottomUp {
+    type Item = usize;
+
+    #[inline]
+    fn next(&mut self) -> Option<usize> {
+        match self {
+            BottomUp::Backward(r) => r.next_back(),
+            BottomUp::ReversedPreorder(it) => it.next(),
+        }
+    }
+}
+
+/// [`BottomUp`] over `nodes` (empty for an empty tree).
+pub(crate) fn bottom_up(nodes: &[BvhNode]) -> BottomUp {
+    let children_after_parents = nodes
+        .iter()
+        .enumerate()
+        .all(|(i, n)| n.is_leaf() || n.index as usize > i);
+    if children_after_parents || nodes.is_empty() {
+        return BottomUp::Backward(0..nodes.len());
+    }
+    let mut preorder = Vec::with_capacity(nodes.len());
+    let mut stack = vec![0usize];
+    while let Some(i) = stack.pop() {
+        preorder.push(i);
+        if !nodes[i].is_leaf() {
+            let c = nodes[i].index as usize;
+            stack.extend([c + 1, c]);
+        }
+    }
+    BottomUp::ReversedPreorder(preorder.into_iter().rev())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Each node once, after both its children, in either layout.
+    #[test]
+    fn bottom_up_visits_children_first() {
+        let b = Aabb::new(Vec3::ZERO, Vec3::ONE);
+        // Children after parents: root (1, 2), 1 = (3, 4).
+        let forward = [
+            BvhNode::inner(b, 1),
+            BvhNode::inner(b, 3),
+            BvhNode::leaf(b, 0, 1),
+            BvhNode::leaf(b, 1, 1),
+            BvhNode::leaf(b, 2, 1),
+        ];
+        // The inner child after its own children: root (3, 4), 3 = (1, 2).
+        let backward = [
+            BvhNode::inner(b, 3),
+            BvhNode::leaf(b, 0, 1),
+            BvhNode::leaf(b, 1, 1),
+            BvhNode::inner(b, 1),
+            BvhNode::leaf(b, 2, 1),
+        ];
+        for nodes in [&forward[..], &backward[..]] {
+            let order: Vec<usize> = bottom_up(nodes).collect();
+            let pos = |i: usize| order.iter().position(|&k| k == i).unwrap();
+            assert_eq!(order.len(), nodes.len(), "{order:?}");
+            for (i, n) in nodes.iter().enumerate() {
+                if !n.is_leaf() {
+                    let c = n.index as usize;
+                    assert!(pos(c) < pos(i) && pos(c + 1) < pos(i), "{order:?}");
+                }
+            }
+        }
+        assert_eq!(bottom_up(&[]).count(), 0);
+    }
+}

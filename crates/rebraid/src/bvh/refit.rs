@@ -17,6 +17,7 @@
 use rayon::prelude::*;
 
 use super::BvhNode;
+use super::node::bottom_up;
 use crate::triangle::is_degenerate;
 use crate::{Aabb, Error, MeshBvh, TriangleMesh};
 
@@ -103,35 +104,11 @@ pub(crate) fn refit_node(nodes: &mut [BvhNode], i: usize) {
     }
 }
 
-/// Every inner box made the union of its children's, bottom-up: one
-/// backward sweep when children come after their parents (every builder's
-/// layout), a post-order walk otherwise.
+/// Every inner box made the union of its children's, bottom-up
+/// ([`super::node::bottom_up`]).
 pub(crate) fn refit_inner(nodes: &mut [BvhNode]) {
-    let children_after_parent = nodes
-        .iter()
-        .enumerate()
-        .all(|(i, n)| n.is_leaf() || n.index as usize > i);
-    if children_after_parent {
-        for i in (0..nodes.len()).rev() {
-            refit_node(nodes, i);
-        }
-    } else if !nodes.is_empty() {
-        // Post-order walk: (node, children done).
-        let mut stack = vec![(0usize, false)];
-        while let Some((i, done)) = stack.pop() {
-            let n = nodes[i];
-            if n.is_leaf() {
-                continue;
-            }
-            let c = n.index as usize;
-            if done {
-                refit_node(nodes, i);
-            } else {
-                stack.push((i, true));
-                stack.push((c, false));
-                stack.push((c + 1, false));
-            }
-        }
+    for i in bottom_up(nodes) {
+        refit_node(nodes, i);
     }
 }
 

@@ -244,20 +244,21 @@ impl<const W: usize> WideBvh<W> {
             } else {
                 let c = bin[b].index as usize;
                 kids.extend([candidate(c), candidate(c + 1)]);
-            }
-            while plan.is_none() && kids.len() < W {
-                // The inner child of largest area (first of equals); areas
-                // may be infinite for huge boxes, never NaN for valid ones.
-                let mut best: Option<(usize, f32)> = None;
-                for (i, &(k, a)) in kids.iter().enumerate() {
-                    if !bin[k].is_leaf() && best.is_none_or(|(_, ba)| a > ba) {
-                        best = Some((i, a));
+                while kids.len() < W {
+                    // The inner child of largest area (first of equals);
+                    // areas may be infinite for huge boxes, never NaN for
+                    // valid ones.
+                    let mut best: Option<(usize, f32)> = None;
+                    for (i, &(k, a)) in kids.iter().enumerate() {
+                        if !bin[k].is_leaf() && best.is_none_or(|(_, ba)| a > ba) {
+                            best = Some((i, a));
+                        }
                     }
+                    let Some((i, _)) = best else { break };
+                    let c = bin[kids[i].0].index as usize;
+                    kids[i] = candidate(c);
+                    kids.insert(i + 1, candidate(c + 1));
                 }
-                let Some((i, _)) = best else { break };
-                let c = bin[kids[i].0].index as usize;
-                kids[i] = candidate(c);
-                kids.insert(i + 1, candidate(c + 1));
             }
             for (slot, &(k, _)) in kids.iter().enumerate() {
                 let n = &bin[k];
