@@ -188,7 +188,7 @@ mod tests {
 
     use super::*;
     use crate::Aabb;
-    use crate::bvh::test_trees::{build_over as build, scattered_boxes as boxes};
+    use crate::bvh::test_trees::{build_over as build, scattered_boxes as boxes, two_layouts};
     use crate::bvh::wide::{decode_leaf, is_leaf_ref};
     use crate::bvh::{Bvh, WideBvh};
 
@@ -322,25 +322,9 @@ mod tests {
     fn children_before_parents_give_the_same_plan() {
         let bx = |x0: f32, x1: f32| Aabb::new(Vec3::new(x0, 0.0, 0.0), Vec3::new(x1, 1.0, 1.0));
         let (a, b, c) = (bx(0.0, 1.0), bx(1.5, 2.0), bx(5.0, 9.0));
+        let [forward, backward] = two_layouts(a, b, c);
         let ab = a.union(b);
         let all = ab.union(c);
-        // Children after parents: root (1, 2), 1 = (3, 4).
-        let forward = [
-            BvhNode::inner(all, 1),
-            BvhNode::inner(ab, 3),
-            BvhNode::leaf(c, 2, 1),
-            BvhNode::leaf(a, 0, 1),
-            BvhNode::leaf(b, 1, 1),
-        ];
-        // The same tree with the inner child after its own children: root
-        // (3, 4), 3 = (1, 2).
-        let backward = [
-            BvhNode::inner(all, 3),
-            BvhNode::leaf(a, 0, 1),
-            BvhNode::leaf(b, 1, 1),
-            BvhNode::inner(ab, 1),
-            BvhNode::leaf(c, 2, 1),
-        ];
         let f = CollapsePlan::<2>::new(&forward);
         let k = CollapsePlan::<2>::new(&backward);
         assert_eq!(f.root_cost(), k.root_cost());

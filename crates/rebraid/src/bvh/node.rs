@@ -118,22 +118,7 @@ mod tests {
     #[test]
     fn bottom_up_visits_children_first() {
         let b = Aabb::new(Vec3::ZERO, Vec3::ONE);
-        // Children after parents: root (1, 2), 1 = (3, 4).
-        let forward = [
-            BvhNode::inner(b, 1),
-            BvhNode::inner(b, 3),
-            BvhNode::leaf(b, 0, 1),
-            BvhNode::leaf(b, 1, 1),
-            BvhNode::leaf(b, 2, 1),
-        ];
-        // The inner child after its own children: root (3, 4), 3 = (1, 2).
-        let backward = [
-            BvhNode::inner(b, 3),
-            BvhNode::leaf(b, 0, 1),
-            BvhNode::leaf(b, 1, 1),
-            BvhNode::inner(b, 1),
-            BvhNode::leaf(b, 2, 1),
-        ];
+        let [forward, backward] = crate::bvh::test_trees::two_layouts(b, b, b);
         for nodes in [&forward[..], &backward[..]] {
             let order: Vec<usize> = bottom_up(nodes).collect();
             let pos = |i: usize| order.iter().position(|&k| k == i).unwrap();

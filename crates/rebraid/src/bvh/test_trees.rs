@@ -3,7 +3,7 @@
 
 use glam::Vec3;
 
-use super::{BuildParams, Bvh, build_bvh};
+use super::{BuildParams, Bvh, BvhNode, build_bvh};
 use crate::Aabb;
 
 /// `n` boxes of random size scattered in a cube, every 37th large (what a
@@ -33,4 +33,28 @@ pub(crate) fn build_over(boxes: &[Aabb], max_leaf: u32) -> Bvh {
         ..BuildParams::default()
     };
     build_bvh(boxes, &centroids, &params).unwrap()
+}
+
+/// One small tree, `((a, b), c)` over leaves of one primitive each, in two
+/// layouts: children after their parents (root (1, 2), 1 = (3, 4)), and the
+/// inner child after its own children (root (3, 4), 3 = (1, 2)).
+pub(crate) fn two_layouts(a: Aabb, b: Aabb, c: Aabb) -> [[BvhNode; 5]; 2] {
+    let ab = a.union(b);
+    let all = ab.union(c);
+    [
+        [
+            BvhNode::inner(all, 1),
+            BvhNode::inner(ab, 3),
+            BvhNode::leaf(c, 2, 1),
+            BvhNode::leaf(a, 0, 1),
+            BvhNode::leaf(b, 1, 1),
+        ],
+        [
+            BvhNode::inner(all, 3),
+            BvhNode::leaf(a, 0, 1),
+            BvhNode::leaf(b, 1, 1),
+            BvhNode::inner(ab, 1),
+            BvhNode::leaf(c, 2, 1),
+        ],
+    ]
 }
