@@ -117,9 +117,11 @@ impl<const W: usize> CollapsePlan<W> {
     /// split of `k` slots gives it one and the right child `k - 1`, and with
     /// a leaf on the right the left child takes the fewest slots that reach
     /// its least cost: what the general loop finds, ties included, without
-    /// its 28 sums per node at width 8. Binary trees have a leaf child at
-    /// about half their inner nodes (`CollapsePlan::new` took 10% of the
-    /// 2CylinderEngine's build instructions before, callgrind).
+    /// its 28 sums per node at width 8. At least about half the inner
+    /// nodes of a binary tree have a leaf child (every leaf's parent does,
+    /// and a parent has two children: `L` leaves, `L - 1` inner nodes);
+    /// `CollapsePlan::new` took 10% of the 2CylinderEngine's build
+    /// instructions before (callgrind).
     #[inline]
     fn fill(bin: &[BvhNode], rows: &mut [Row<W>], n: usize) {
         let node = &bin[n];
@@ -407,16 +409,15 @@ mod tests {
                 CollapsePlan::<W>::share(c, &zero)
             );
         }
+        fn plan_rows_agree<const W: usize>(bin: &Bvh) {
+            for row in &CollapsePlan::<W>::new(&bin.nodes).rows {
+                rows_agree(&row.cost);
+            }
+        }
         for seed in 1..60u32 {
             let bin = build(&boxes(seed, 20 + seed as usize * 9), 1 + seed % 8);
-            let plan = CollapsePlan::<8>::new(&bin.nodes);
-            for row in &plan.rows {
-                rows_agree(&row.cost);
-            }
-            let plan = CollapsePlan::<4>::new(&bin.nodes);
-            for row in &plan.rows {
-                rows_agree(&row.cost);
-            }
+            plan_rows_agree::<8>(&bin);
+            plan_rows_agree::<4>(&bin);
         }
         // Plateaus: the fewest slots that reach the least cost.
         rows_agree(&[5.0, 3.0, 3.0, 3.0, 1.0, 1.0, 1.0, 1.0]);
