@@ -12,29 +12,19 @@
 # (objects + top level) in milliseconds. A binary may be a wrapper script that adds options
 # (`exec rebraid "$@" --merge-placed`). Why the control: see `tools/ab-wall.sh`; a change is
 # resolved only where its ratio stands clear of the control's. Environment: MODES (default
-# rebraided), THREADS (1), EXTRA (more `rebraid bench` options, e.g. "--scale 3" for the
-# built-in library scene).
+# rebraided), THREADS (1), PIN (a command prefix), EXTRA (more `rebraid bench` options, e.g.
+# "--scale 3" for the built-in library scene).
 set -euo pipefail
+# shellcheck source=tools/ab-runs.sh
+. "$(dirname "$0")/ab-runs.sh"
 rounds=$1 scenes=$2
 shift 2
 bins=("$@")
-[ "${#bins[@]}" -ge 2 ] || { echo "need a baseline and at least one other binary" >&2; exit 2; }
 modes=${MODES:-rebraided} threads=${THREADS:-1}
 d=$(mktemp -d)
 trap 'rm -rf "$d"' EXIT
-for i in $(seq 1 "$rounds"); do
-    for s in $scenes; do
-        for k in "${!bins[@]}"; do
-            # shellcheck disable=SC2086 # EXTRA is a list of options
-            if ! "${bins[$k]}" bench "$s" --modes "$modes" --sets diffuse --threads "$threads" \
-                --reps 5 --width 16 --height 16 --json "$d/$k.$i.$(basename "$s").json" \
-                ${EXTRA:-} >/dev/null 2>&1; then
-                echo "run failed: ${bins[$k]} $s" >&2
-                exit 1
-            fi
-        done
-    done
-done
+ab_runs "$d" "$rounds" "$scenes" --modes "$modes" --sets diffuse --threads "$threads" --reps 5 \
+    --width 16 --height 16
 python3 - "$d" "${#bins[@]}" <<'PY'
 import collections, glob, json, os, statistics, sys
 

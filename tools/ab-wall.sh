@@ -15,27 +15,16 @@
 # REPS (1, repetitions inside each process, median), PIN (a command prefix, e.g. "taskset -c 1"),
 # EXTRA (more `rebraid bench` options, e.g. "--scale 3" for the built-in library scene).
 set -euo pipefail
+# shellcheck source=tools/ab-runs.sh
+. "$(dirname "$0")/ab-runs.sh"
 rounds=$1 scenes=$2
 shift 2
 bins=("$@")
-[ "${#bins[@]}" -ge 2 ] || { echo "need a baseline and at least one other binary" >&2; exit 2; }
 modes=${MODES:-rebraided,flat} sets=${SETS:-diffuse} w=${W:-480} h=${H:-270} reps=${REPS:-1}
 d=$(mktemp -d)
 trap 'rm -rf "$d"' EXIT
-for i in $(seq 1 "$rounds"); do
-    for s in $scenes; do
-        for k in "${!bins[@]}"; do
-            # shellcheck disable=SC2086 # PIN is a command prefix, EXTRA a list of options
-            if ! ${PIN:-} "${bins[$k]}" bench "$s" --modes "$modes" --sets "$sets" --threads 1 \
-                --reps "$reps" --width "$w" --height "$h" --json "$d/$k.$i.$(basename "$s").json" \
-                ${EXTRA:-} >"$d/log" 2>&1; then
-                echo "round $i: ${bins[$k]} bench $s failed:" >&2
-                tail -5 "$d/log" >&2
-                exit 1
-            fi
-        done
-    done
-done
+ab_runs "$d" "$rounds" "$scenes" --modes "$modes" --sets "$sets" --threads 1 --reps "$reps" \
+    --width "$w" --height "$h"
 python3 - "$d" "$sets" "${#bins[@]}" <<'PY'
 import collections, glob, json, os, statistics, sys
 d, sets, nb = sys.argv[1], sys.argv[2].split(","), int(sys.argv[3])
