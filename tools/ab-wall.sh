@@ -6,24 +6,25 @@
 #            base/rebraid new/rebraid base/rebraid
 #
 # Each round runs every binary once per scene, in the order given (one `rebraid bench` process
-# per run, one thread), and prints per scene, mode and ray set the median over rounds of each
-# binary's Mrays/s divided by the first binary's in the same round, and the ratio of the best
-# runs. Why the control: on this shared machine the same binary against itself strays from 1.0
-# by up to 10% in such medians, and a binary's position in the round biases it
-# (docs/performance.md, session 23); a change is resolved only where its ratio stands clear of
-# the control's. Environment: MODES (default rebraided,flat), SETS (diffuse), W and H (480x270),
-# REPS (1, repetitions inside each process, median), PIN (a command prefix, e.g. "taskset -c 1"),
-# EXTRA (more `rebraid bench` options, e.g. "--scale 3" for the built-in library scene).
+# per run, one thread unless THREADS says otherwise), and prints per scene, mode and ray set the
+# median over rounds of each binary's Mrays/s divided by the first binary's in the same round,
+# and the ratio of the best runs. Why the control: on this shared machine the same binary
+# against itself strays from 1.0 by up to 10% in such medians, and a binary's position in the
+# round biases it (docs/performance.md, session 23); a change is resolved only where its ratio
+# stands clear of the control's. Environment: MODES (default rebraided,flat), SETS (diffuse), W
+# and H (480x270), REPS (1, repetitions inside each process, median), THREADS (1), PIN (a
+# command prefix, e.g. "taskset -c 1"), EXTRA (more `rebraid bench` options, e.g. "--scale 3"
+# for the built-in library scene).
 set -euo pipefail
 # shellcheck source=tools/ab-runs.sh
 . "$(dirname "$0")/ab-runs.sh"
 rounds=$1 scenes=$2
 shift 2
 bins=("$@")
-modes=${MODES:-rebraided,flat} sets=${SETS:-diffuse} w=${W:-480} h=${H:-270} reps=${REPS:-1}
+modes=${MODES:-rebraided,flat} sets=${SETS:-diffuse} w=${W:-480} h=${H:-270} reps=${REPS:-1} threads=${THREADS:-1}
 d=$(mktemp -d)
 trap 'rm -rf "$d"' EXIT
-ab_runs "$d" "$rounds" "$scenes" --modes "$modes" --sets "$sets" --threads 1 --reps "$reps" \
+ab_runs "$d" "$rounds" "$scenes" --modes "$modes" --sets "$sets" --threads "$threads" --reps "$reps" \
     --width "$w" --height "$h"
 python3 - "$d" "$sets" "${#bins[@]}" <<'PY'
 import collections, glob, json, os, statistics, sys

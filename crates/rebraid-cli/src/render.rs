@@ -134,8 +134,13 @@ pub fn render(scene: &Scene, s: &RenderSettings) -> Image {
         Vec3::new(0.35, 0.4, 0.5) * (0.3 + 0.7 * k)
     };
     let pb = progress_bar(s.progress, s.height as u64, "render");
+    // A task per row (as `rebraid::ray::par_query_runs` takes one per run
+    // of rays): rows cost unevenly (sky against geometry), and rayon's
+    // default pieces (a quarter of the rows each at two threads) can leave
+    // one thread idle at the end.
     let rows: Vec<Vec<Vec3>> = (0..s.height)
         .into_par_iter()
+        .with_max_len(1)
         .map(|y| {
             let mut rng = rand_pcg::Pcg32::seed_from_u64(0xbeef ^ y as u64);
             let row = (0..s.width)
@@ -199,6 +204,7 @@ pub fn heat_counts(scene: &Scene, s: &RenderSettings) -> Vec<u32> {
     let pb = progress_bar(s.progress, s.height as u64, "heatmap");
     let out = (0..s.height)
         .into_par_iter()
+        .with_max_len(1)
         .flat_map_iter(|y| {
             let row: Vec<u32> = (0..s.width)
                 .map(|x| {

@@ -108,6 +108,21 @@ where
 /// sharing across rays. Results do not depend on the thread count as long
 /// as each ray's answer depends only on the ray.
 ///
+/// Every run is a task of its own (`with_max_len(1)`). Without it rayon
+/// halves an indexed range until it has about two pieces per thread (four
+/// at two threads) and runs each piece in one go unless another thread
+/// steals it before it starts, so a thread that finishes early may find
+/// nothing left to take while the other works through a quarter of the
+/// batch. Where the cost of rays is
+/// uneven along the batch (the cocoa temple's diffuse rays, from the
+/// third of its image that hits geometry) that cost the re-braided mode a
+/// fifth of its two-thread rate: 1 -> 2 threads 8.14 -> 13.49 Mrays/s
+/// against `embree-flat`'s 7.87 -> 14.89 on the same harness; with a task
+/// per run 8.12 -> 15.09, and `tools/ab-wall.sh` at two threads (4 rounds,
+/// 1280x720) put it at 1.217 against a control of 0.949, the other scenes
+/// within their controls (docs/performance.md, session 40). A task per
+/// 256-ray run costs nothing measurable at one thread.
+///
 /// Panics when `rays` and `out` differ in length (a caller bug).
 pub fn par_query_runs<T, F>(rays: &[Ray], out: &mut [T], query: F)
 where
@@ -118,6 +133,7 @@ where
     assert_eq!(rays.len(), out.len(), "one output per ray");
     out.par_chunks_mut(QUERY_RUN)
         .zip(rays.par_chunks(QUERY_RUN))
+        .with_max_len(1)
         .for_each(|(o, r)| query(r, o));
 }
 
