@@ -206,6 +206,36 @@ impl Hit {
 mod tests {
     use super::*;
 
+    /// Every slot gets its own ray's answer, once, whatever the batch's
+    /// length against [`QUERY_RUN`] and the pool's size (one task per run,
+    /// stolen in any order).
+    #[test]
+    fn runs_answer_every_slot_with_its_own_ray() {
+        for threads in [1, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("a test pool");
+            for len in [0, 1, QUERY_RUN - 1, QUERY_RUN, 5 * QUERY_RUN + 7] {
+                let rays: Vec<Ray> = (0..len)
+                    .map(|i| Ray::infinite(Vec3::new(i as f32, 0.0, 0.0), Vec3::X))
+                    .collect();
+                let mut out = vec![(-1.0f32, 0u32); len];
+                pool.install(|| {
+                    par_query_runs(&rays, &mut out, |rays, out| {
+                        assert!(rays.len() <= QUERY_RUN && rays.len() == out.len());
+                        for (o, r) in out.iter_mut().zip(rays) {
+                            *o = (r.origin.x, o.1 + 1);
+                        }
+                    })
+                });
+                for (i, o) in out.iter().enumerate() {
+                    assert_eq!(*o, (i as f32, 1), "{threads} threads, {len} rays, slot {i}");
+                }
+            }
+        }
+    }
+
     #[test]
     fn checked_constructor_rejects_bad_rays() {
         assert!(Ray::new(Vec3::ZERO, Vec3::ZERO, 0.0, 1.0).is_err());
