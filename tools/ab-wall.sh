@@ -21,11 +21,12 @@ set -euo pipefail
 rounds=$1 scenes=$2
 shift 2
 bins=("$@")
-modes=${MODES:-rebraided,flat} sets=${SETS:-diffuse} w=${W:-480} h=${H:-270} reps=${REPS:-1} threads=${THREADS:-1}
+modes=${MODES:-rebraided,flat} sets=${SETS:-diffuse} w=${W:-480} h=${H:-270} reps=${REPS:-1}
+threads=${THREADS:-1}
 d=$(mktemp -d)
 trap 'rm -rf "$d"' EXIT
-ab_runs "$d" "$rounds" "$scenes" --modes "$modes" --sets "$sets" --threads "$threads" --reps "$reps" \
-    --width "$w" --height "$h"
+ab_runs "$d" "$rounds" "$scenes" --modes "$modes" --sets "$sets" --threads "$threads" \
+    --reps "$reps" --width "$w" --height "$h"
 python3 - "$d" "$sets" "${#bins[@]}" <<'PY'
 import collections, glob, json, os, statistics, sys
 d, sets, nb = sys.argv[1], sys.argv[2].split(","), int(sys.argv[3])

@@ -113,15 +113,15 @@ where
 /// at two threads) and runs each piece in one go unless another thread
 /// steals it before it starts, so a thread that finishes early may find
 /// nothing left to take while the other works through a quarter of the
-/// batch. Where the cost of rays is
-/// uneven along the batch (the cocoa temple's diffuse rays, from the
-/// third of its image that hits geometry) that cost the re-braided mode a
-/// fifth of its two-thread rate: 1 -> 2 threads 8.14 -> 13.49 Mrays/s
-/// against `embree-flat`'s 7.87 -> 14.89 on the same harness; with a task
-/// per run 8.12 -> 15.09, and `tools/ab-wall.sh` at two threads (4 rounds,
-/// 1280x720) put it at 1.217 against a control of 0.949, the other scenes
-/// within their controls (docs/performance.md, session 40). A task per
-/// 256-ray run costs nothing measurable at one thread.
+/// batch. Where the cost of rays is uneven along the batch (the cocoa
+/// temple's diffuse rays, which start from the two fifths of its image
+/// that hit geometry) that cost the re-braided mode 10-20% of its
+/// two-thread rate: 1 -> 2 threads 8.14 -> 13.49 Mrays/s against
+/// `embree-flat`'s 7.87 -> 14.89 on the same harness, and with a task per
+/// run 8.12 -> 15.09; `tools/ab-wall.sh` at two threads (4 rounds,
+/// 1280x720) put the change at 1.217 against a control of 0.949, the other
+/// scenes within their controls (docs/performance.md, session 40). A task
+/// per 256-ray run costs nothing measurable at one thread.
 ///
 /// Panics when `rays` and `out` differ in length (a caller bug).
 pub fn par_query_runs<T, F>(rays: &[Ray], out: &mut [T], query: F)
