@@ -56,6 +56,77 @@ pub struct BenchRow {
     /// cycles): see [`Best`].
     #[serde(default)]
     pub best: Best,
+    /// The top level's build by phase (medians over the repetitions; zero
+    /// for Embree's rows and the flat mode).
+    #[serde(default)]
+    pub top_phases_ms: TopPhases,
+}
+
+/// Where a top level's build went, in milliseconds: the binned build with
+/// its opening, the reinsertion, and the layout pass by phase (see
+/// [`rebraid::toplevel::LayoutTimes`]). The parts of
+/// [`BenchRow::build_ms_top`] that the scene's own commit report does not
+/// split: what decides how small a share of the whole build the re-braided
+/// top level takes.
+#[derive(Clone, Copy, Debug, Default, Serialize, serde::Deserialize, PartialEq)]
+pub struct TopPhases {
+    pub build: f64,
+    pub reinsert: f64,
+    pub collapse: f64,
+    pub entries: f64,
+    pub grafts: f64,
+    pub order: f64,
+    pub copies: f64,
+}
+
+impl TopPhases {
+    /// The phases of one commit's top level (zero without one).
+    pub fn of(top: Option<&rebraid::toplevel::TopLevelBuildStats>) -> Self {
+        let Some(t) = top else {
+            return Self::default();
+        };
+        let l = &t.layout;
+        Self {
+            build: t.build_ms - t.reinsert_ms,
+            reinsert: t.reinsert_ms,
+            collapse: l.collapse_ms,
+            entries: l.entries_ms,
+            grafts: l.graft_ms,
+            order: l.order_ms,
+            copies: l.copy_ms,
+        }
+    }
+
+    /// The phases summed: the whole top-level build.
+    pub fn total(&self) -> f64 {
+        self.build
+            + self.reinsert
+            + self.collapse
+            + self.entries
+            + self.grafts
+            + self.order
+            + self.copies
+    }
+
+    /// Each phase's median over `all`.
+    pub fn median_of(all: &[TopPhases]) -> Self {
+        let m = |f: fn(&TopPhases) -> f64| {
+            if all.is_empty() {
+                0.0
+            } else {
+                median(all.iter().map(f).collect())
+            }
+        };
+        Self {
+            build: m(|p| p.build),
+            reinsert: m(|p| p.reinsert),
+            collapse: m(|p| p.collapse),
+            entries: m(|p| p.entries),
+            grafts: m(|p| p.grafts),
+            order: m(|p| p.order),
+            copies: m(|p| p.copies),
+        }
+    }
 }
 
 /// The fastest measurement of a row: the shortest build (ms) and the
@@ -284,6 +355,7 @@ pub fn bench_scene(
         let rows_t: anyhow::Result<Vec<BenchRow>> = pool.install(|| {
             let m = cfg.modes.len();
             let mut builds: Vec<Vec<(f64, f64, f64)>> = vec![Vec::new(); m];
+            let mut phases: Vec<Vec<TopPhases>> = vec![Vec::new(); m];
             let mut scenes: Vec<Option<Scene>> = (0..m).map(|_| None).collect();
             // One build of `mode`'s scene (the timed ones and the warm-up).
             let build = |mode: AccelMode| -> anyhow::Result<(Scene, CommitReport)> {
@@ -311,6 +383,7 @@ pub fn bench_scene(
                     ));
                     let (scene, r) = build(mode)?;
                     builds[i].push((r.object_build_ms, r.top_build_ms, r.total_ms));
+                    phases[i].push(TopPhases::of(r.top.as_ref()));
                     scenes[i] = Some(scene);
                 }
             }
@@ -368,6 +441,7 @@ pub fn bench_scene(
                         sets,
                         &times[i],
                     ),
+                    top_phases_ms: TopPhases::median_of(&phases[i]),
                 });
             }
             Ok(out)
@@ -634,6 +708,8 @@ pub fn median_rows(cycles: &[Vec<BenchRow>]) -> Vec<BenchRow> {
             row.shadow.mrays_per_s = med(&|r| r.shadow.mrays_per_s);
             row.diffuse.mrays_per_s = med(&|r| r.diffuse.mrays_per_s);
             row.best = same.iter().map(|r| r.best).fold(r0.best, Best::max);
+            let phases: Vec<TopPhases> = same.iter().map(|r| r.top_phases_ms).collect();
+            row.top_phases_ms = TopPhases::median_of(&phases);
             row
         })
         .collect()
@@ -724,6 +800,39 @@ mod tests {
         assert_eq!(back.primary, sets.primary);
         assert_eq!(back.diffuse, sets.diffuse);
         assert!(back.shadow.is_empty());
+    }
+
+    #[test]
+    fn top_phases_are_medians_per_phase() {
+        assert_eq!(TopPhases::of(None), TopPhases::default());
+        assert_eq!(TopPhases::median_of(&[]), TopPhases::default());
+        let p = |x: f64| TopPhases {
+            build: x,
+            reinsert: 2.0 * x,
+            collapse: 3.0 * x,
+            entries: 4.0 * x,
+            grafts: 5.0 * x,
+            order: 6.0 * x,
+            copies: 7.0 * x,
+        };
+        let m = TopPhases::median_of(&[p(3.0), p(1.0), p(2.0)]);
+        assert_eq!(m, p(2.0));
+        assert_eq!(m.total(), 28.0 * 2.0);
+        let stats = rebraid::toplevel::TopLevelBuildStats {
+            build_ms: 5.0,
+            reinsert_ms: 2.0,
+            layout: rebraid::toplevel::LayoutTimes {
+                collapse_ms: 1.0,
+                entries_ms: 0.5,
+                graft_ms: 0.25,
+                order_ms: 0.125,
+                copy_ms: 0.0625,
+            },
+            ..Default::default()
+        };
+        let t = TopPhases::of(Some(&stats));
+        assert_eq!((t.build, t.reinsert), (3.0, 2.0));
+        assert_eq!(t.total(), 5.0 + stats.layout.total_ms());
     }
 
     #[test]

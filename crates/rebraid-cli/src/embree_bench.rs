@@ -113,6 +113,7 @@ pub fn run_worker(
             diffuse: set(2, sets.diffuse.len()),
             camera: String::new(),
             best,
+            top_phases_ms: Default::default(),
         })
     })
 }

@@ -1038,6 +1038,22 @@ fn run_embree_worker(_: EmbreeWorkerArgs) -> anyhow::Result<()> {
     bail!("this build has no Embree support (build with --features embree)")
 }
 
+/// One row of `rebraid stats`' top-level phases: the binned build (its
+/// reinsertion apart), the layout pass by phase, their total and its share
+/// of the commit's `total_ms`.
+fn top_phases_line(mode: &str, p: &bench::TopPhases, total_ms: f64) -> String {
+    let sum = p.total();
+    let share = if total_ms > 0.0 {
+        100.0 * sum / total_ms
+    } else {
+        0.0
+    };
+    format!(
+        "  {:<10} {:>7.2} {:>8.2} {:>9.2} {:>8.2} {:>8.2} {:>7.2} {:>7.2} {:>7.2} {:>5.1}%",
+        mode, p.build, p.reinsert, p.collapse, p.entries, p.grafts, p.order, p.copies, sum, share
+    )
+}
+
 fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
     let modes = parse_modes(&a.modes)?;
     let inputs: Vec<SceneInput> = scene_list(&a.scenes)
@@ -1084,6 +1100,7 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
             None => None,
         };
         let mut visit_lines = Vec::new();
+        let mut phase_lines = Vec::new();
         for &mode in &modes {
             let mut scene = Scene::from_desc(&desc, a.opts.scene_params(mode)?)?;
             let rep = scene.commit()?;
@@ -1132,7 +1149,33 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
                 "ref_capacity": top.capacity,
                 "flat_depth": st.flat.as_ref().map(|f| f.max_depth),
                 "visits_per_ray": visits,
+                "top_phases_ms": bench::TopPhases::of(st.top.as_ref()),
             }));
+            if st.top.is_some() {
+                let p = bench::TopPhases::of(st.top.as_ref());
+                phase_lines.push(top_phases_line(mode.name(), &p, rep.total_ms));
+            }
+        }
+        if !phase_lines.is_empty() {
+            println!(
+                "  top level by phase, ms (one build; share: of the whole commit, objects included):"
+            );
+            println!(
+                "  {:<10} {:>7} {:>8} {:>9} {:>8} {:>8} {:>7} {:>7} {:>7} {:>6}",
+                "mode",
+                "build",
+                "reinsert",
+                "collapse",
+                "entries",
+                "grafts",
+                "order",
+                "copies",
+                "total",
+                "share"
+            );
+            for l in &phase_lines {
+                println!("{l}");
+            }
         }
         if !visit_lines.is_empty() {
             println!(

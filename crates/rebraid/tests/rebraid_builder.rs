@@ -88,6 +88,26 @@ fn budgets_and_thresholds_build_valid_reachable_trees_that_answer_right() {
                 check_top(t, &model, &what);
                 let st = rep.top.clone().unwrap();
                 assert_eq!(st, t.build_stats, "{what}");
+                // The phase clocks: parts of the build and of the commit's
+                // top-level time, none negative.
+                let l = st.layout;
+                for ms in [
+                    st.build_ms,
+                    st.reinsert_ms,
+                    l.collapse_ms,
+                    l.entries_ms,
+                    l.graft_ms,
+                    l.order_ms,
+                    l.copy_ms,
+                ] {
+                    assert!(ms >= 0.0 && ms.is_finite(), "{what}: {st:?}");
+                }
+                assert!(st.reinsert_ms <= st.build_ms, "{what}: {st:?}");
+                assert!(
+                    st.build_ms + l.total_ms() <= rep.top_build_ms * 1.0001 + 1e-6,
+                    "{what}: {st:?} against {}",
+                    rep.top_build_ms
+                );
                 let n = st.refs_initial;
                 // The budget counts each object once, however often placed.
                 let prims = model.distinct_triangles() as u64;

@@ -541,7 +541,37 @@ pub struct TopLevelBuildStats {
     /// budget.
     pub overlap: f64,
     pub top_nodes: usize,
+    /// The binned build with its opening, the reinsertion included.
     pub build_ms: f64,
+    /// Of `build_ms`, the reinsertion (`RebraidParams::reinsert`) and the
+    /// depth-first relayout after it.
+    pub reinsert_ms: f64,
+    /// The layout pass after the build (`TopLevelAccel::new`), by phase.
+    pub layout: LayoutTimes,
+}
+
+/// Where the top level's layout pass (`TopLevelAccel::new`) spent its
+/// time, in milliseconds: what, besides the build itself, the re-braided
+/// top level costs (`rebraid stats` prints it). Measured with a clock
+/// around each phase; the phases run one after the other.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct LayoutTimes {
+    /// The SAH-optimal (or greedy) collapse into 8-wide nodes.
+    pub collapse_ms: f64,
+    /// Entry records, and object wide nodes pulled into free slots.
+    pub entries_ms: f64,
+    /// Small object subtrees grafted into the top level.
+    pub graft_ms: f64,
+    /// The occlusion order of every node's slots.
+    pub order_ms: f64,
+    /// Object leaf blocks copied into the top level, and their placements.
+    pub copy_ms: f64,
+}
+
+impl LayoutTimes {
+    pub fn total_ms(&self) -> f64 {
+        self.collapse_ms + self.entries_ms + self.graft_ms + self.order_ms + self.copy_ms
+    }
 }
 
 /// Object BVHs and instance transforms the refs point into.
@@ -712,6 +742,7 @@ pub fn build_top_level_with(
         }));
         leaf.index = first;
     });
+    let reinsert_start = std::time::Instant::now();
     if params.open && reinsert(&mut nodes, &params.reinsert) {
         // Depth-first again, the refs in the new leaf order.
         let map = reorder_depth_first(&mut nodes);
@@ -720,6 +751,7 @@ pub fn build_top_level_with(
             *r = old[m as usize];
         }
     }
+    let reinsert_ms = reinsert_start.elapsed().as_secs_f64() * 1e3;
     let stats = TopLevelBuildStats {
         refs_initial: n,
         refs_final: out_refs.len(),
@@ -729,6 +761,8 @@ pub fn build_top_level_with(
         overlap,
         top_nodes: nodes.len(),
         build_ms: start.elapsed().as_secs_f64() * 1e3,
+        reinsert_ms,
+        layout: LayoutTimes::default(),
     };
     let tree = Bvh {
         nodes,

@@ -29,7 +29,9 @@ use crate::transform::{transform_box, transform_normal};
 use crate::triangle::WatertightRay;
 use crate::{Aabb, Hit, INVALID_ID, MeshBvh, Ray};
 
-pub use builder::{BuildRef, RebraidParams, RefBudget, TopLevelBuildStats, build_top_level};
+pub use builder::{
+    BuildRef, LayoutTimes, RebraidParams, RefBudget, TopLevelBuildStats, build_top_level,
+};
 
 /// An object's BVH with what the top-level builder needs besides: the number
 /// of primitives under each node (the real counts the SAH weights refs by).
@@ -1781,6 +1783,14 @@ impl TopLevelAccel {
         layout: TopLevelLayout,
         buffers: LayoutBuffers,
     ) -> Self {
+        let mut clock = std::time::Instant::now();
+        let mut lap = || {
+            let now = std::time::Instant::now();
+            let ms = (now - clock).as_secs_f64() * 1e3;
+            clock = now;
+            ms
+        };
+        let mut times = LayoutTimes::default();
         let LayoutBuffers {
             wide: mut wide_buffer,
             mut entry_refs,
@@ -1796,6 +1806,7 @@ impl TopLevelAccel {
             .ok()
             .map(|()| wide_buffer)
             .filter(|w| !w.is_empty());
+        times.collapse_ms = lap();
         clear_for(&mut entry_refs, refs.len());
         entry_refs.extend_from_slice(&refs);
         clear_for(&mut entries, refs.len());
@@ -1821,6 +1832,7 @@ impl TopLevelAccel {
             if layout.pull_entry_nodes && direct.is_none() {
                 pull_into_top_level(w, &mut entry_refs, &mut entries, &objects, &instances);
             }
+            times.entries_ms = lap();
             let first_grafted = w.nodes.len();
             if direct.is_none()
                 && ((layout.graft_max_prims > 0 && layout.graft_budget > 0.0)
@@ -1842,9 +1854,13 @@ impl TopLevelAccel {
                     ),
                 );
             }
+            times.graft_ms = lap();
             // Leaves index the entries directly (the tree has no index array).
             w.prim_count = entry_refs.len();
             order_top_level(w, &entries, &objects, &instances, first_grafted, &grafted);
+            times.order_ms = lap();
+        } else {
+            times.entries_ms = lap();
         }
         let block_base = entries.len() as u32;
         let (blocks, block_entry) = match &mut wide {
@@ -1879,6 +1895,8 @@ impl TopLevelAccel {
             direct,
         };
         accel.place_blocks();
+        times.copy_ms = lap();
+        accel.build_stats.layout = times;
         accel
     }
 
