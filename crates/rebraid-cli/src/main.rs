@@ -1133,6 +1133,7 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
                 }
                 visit_lines.push(line);
             }
+            let phases = bench::TopPhases::of(st.top.as_ref());
             per_mode.push(serde_json::json!({
                 "mode": mode.name(),
                 "build_ms": rep.total_ms,
@@ -1149,11 +1150,10 @@ fn run_stats(a: StatsArgs) -> anyhow::Result<()> {
                 "ref_capacity": top.capacity,
                 "flat_depth": st.flat.as_ref().map(|f| f.max_depth),
                 "visits_per_ray": visits,
-                "top_phases_ms": bench::TopPhases::of(st.top.as_ref()),
+                "top_phases_ms": phases,
             }));
             if st.top.is_some() {
-                let p = bench::TopPhases::of(st.top.as_ref());
-                phase_lines.push(top_phases_line(mode.name(), &p, rep.total_ms));
+                phase_lines.push(top_phases_line(mode.name(), &phases, rep.total_ms));
             }
         }
         if !phase_lines.is_empty() {
