@@ -292,6 +292,10 @@ fn bench_library_writes_json_and_modes_agree() {
     for m in MODES {
         assert!(out.contains(m), "table lacks {m}:\n{out}");
     }
+    // The re-braided structure against our flat BVH, with no Embree row
+    // to set our flat BVH against.
+    assert!(out.contains("rebraided / flat "), "{out}");
+    assert!(!out.contains("flat / embree"), "{out}");
     let rows = read_rows(&json);
     assert_eq!(rows.len(), 6, "one row per (mode, threads): {rows:#?}");
     for r in &rows {
@@ -775,6 +779,9 @@ fn embree_rows_agree_with_ours() {
     assert!(out.contains("embree-flat"), "{out}");
     assert!(out.contains("rebraided / embree-two-level-stream"), "{out}");
     assert!(out.contains("rebraided / embree-flat-robust "), "{out}");
+    // The gap to Embree's flat BVH split into structure and base.
+    assert!(out.contains("rebraided / flat "), "{out}");
+    assert!(out.contains("flat / embree-flat-robust-stream "), "{out}");
     let rows = read_rows(&json);
     assert_eq!(rows.len(), 11, "{rows:#?}");
     let embree = [
