@@ -813,7 +813,7 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
     // Where a gap to Embree's flat BVH lies: the re-braided structure
     // against our own flat BVH over the same triangles (same kernels), and
     // our flat BVH against Embree's (the same structure, both builders and
-    // kernels). Their product is the rebraided / embree-flat ratio.
+    // kernels). Within a cycle their product is rebraided / embree-flat.
     let flats: Vec<String> = embree_variants(&a)
         .map(|v| embree_row_name("embree-flat", v))
         .collect();
