@@ -814,10 +814,11 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
     // against our own flat BVH over the same triangles (same kernels), and
     // our flat BVH against Embree's (the same structure, both builders and
     // kernels). Within a cycle their product is rebraided / embree-flat.
-    let flats: Vec<String> = embree_variants(&a)
-        .map(|v| embree_row_name("embree-flat", v))
+    let flats: Vec<&str> = baselines
+        .iter()
+        .copied()
+        .filter(|b| b.starts_with("embree-flat"))
         .collect();
-    let flats: Vec<&str> = flats.iter().map(String::as_str).collect();
     for (mode, base) in [("rebraided", &["flat"][..]), ("flat", &flats[..])] {
         ratios.push_str(&bench::format_ratios(
             &all_cycles,
