@@ -14,6 +14,13 @@
 # as in `tools/callgrind-compare.sh`), at 240x135, one thread. Needs `valgrind` and `objdump`,
 # and a build with `--features embree`.
 set -euo pipefail
+# EVENT=DLmr (or D1mr, Dr...) lists that event per ray instead of instructions, with callgrind's
+# cache model set to this machine's as in `tools/callgrind-compare.sh`.
+event=${EVENT:-Ir}
+cache=()
+if [ "$event" != Ir ]; then
+    cache=(--cache-sim=yes --I1=32768,8,64 --D1=32768,8,64 --LL=1048576,8,64)
+fi
 here=$(cd "$(dirname "$0")" && pwd)
 bin=${REBRAID_BIN:-$here/../target/release/rebraid}
 scene=$1 set=$2 mode=${3:-embree-flat}
@@ -21,7 +28,7 @@ shift 2
 if [ $# -gt 0 ]; then shift; fi
 d=$(mktemp -d)
 trap 'rm -rf "$d"' EXIT
-valgrind --tool=callgrind --trace-children=yes --dump-instr=yes --compress-pos=no \
+valgrind --tool=callgrind "${cache[@]}" --trace-children=yes --dump-instr=yes --compress-pos=no \
     --compress-strings=no --collect-atstart=no \
     --toggle-collect='rebraid_cli::embree::EmbreeScene::intersect_batch_with' \
     --toggle-collect='rebraid_cli::embree::EmbreeScene::occluded_batch_with' \
@@ -33,4 +40,4 @@ for f in "$d"/cg.*; do
     if [ "$(grep -m1 -o -- '--mode [a-z-]*' "$f" | cut -d' ' -f2 || true)" = "$mode" ]; then out=$f; fi
 done
 [ -n "$out" ] || { echo "no callgrind output for $mode" >&2; exit 1; }
-python3 "$here/cg_listing.py" "$out" "$d/run.json" "$set" --hottest-in embree
+python3 "$here/cg_listing.py" "$out" "$d/run.json" "$set" --hottest-in embree --event "$event"

@@ -15,15 +15,22 @@
 # `occluded_batch`, as in `tools/callgrind-compare.sh`) are counted, at
 # 240x135, one thread. Needs `valgrind` and `objdump`.
 set -euo pipefail
+# EVENT=DLmr (or D1mr, Dr...) lists that event per ray instead of instructions, with callgrind's
+# cache model set to this machine's as in `tools/callgrind-compare.sh`.
+event=${EVENT:-Ir}
+cache=()
+if [ "$event" != Ir ]; then
+    cache=(--cache-sim=yes --I1=32768,8,64 --D1=32768,8,64 --LL=1048576,8,64)
+fi
 here=$(cd "$(dirname "$0")" && pwd)
 bin=${REBRAID_BIN:-$here/../target/release/rebraid}
 scene=$1 set=$2 mode=$3 func=$4
 shift 4
 d=$(mktemp -d)
 trap 'rm -rf "$d"' EXIT
-valgrind --tool=callgrind --dump-instr=yes --compress-pos=no --compress-strings=no \
+valgrind --tool=callgrind "${cache[@]}" --dump-instr=yes --compress-pos=no --compress-strings=no \
     --collect-atstart=no --toggle-collect='rebraid::scene::Scene::intersect_batch' \
     --toggle-collect='rebraid::scene::Scene::occluded_batch' \
     --callgrind-out-file="$d/cg" "$bin" bench "$scene" --modes "$mode" --sets "$set" \
     --threads 1 --reps 1 --width 240 --height 135 --json "$d/run.json" "$@" >/dev/null 2>&1
-python3 "$here/cg_listing.py" "$d/cg" "$d/run.json" "$set" --function "$func" --binary "$bin"
+python3 "$here/cg_listing.py" "$d/cg" "$d/run.json" "$set" --function "$func" --binary "$bin" --event "$event"

@@ -18,12 +18,17 @@ import subprocess
 import sys
 
 
-def read_costs(path):
-    """Self cost per (function, address), and each function's object file."""
+def read_costs(path, event="Ir"):
+    """Self cost of one event per (function, address), and each function's object file."""
     cost, obj_of = collections.Counter(), {}
-    fn, obj, after_call = None, None, False
+    fn, obj, after_call, column = None, None, False, 0
     for line in open(path):
-        if line.startswith("ob="):
+        if line.startswith("events:"):
+            names = line.split()[1:]
+            if event not in names:
+                sys.exit(f"event {event!r} not recorded (have: {' '.join(names)})")
+            column = names.index(event)
+        elif line.startswith("ob="):
             obj = line[3:].strip()
         elif line.startswith("fn="):
             fn = line[3:].strip()
@@ -31,12 +36,14 @@ def read_costs(path):
         elif line.startswith("calls="):
             after_call = True  # the next cost line is the call's inclusive cost
         else:
-            m = re.match(r"^(0x[0-9a-f]+)\s+\d+\s+(\d+)", line)
+            m = re.match(r"^(0x[0-9a-f]+)\s+\d+((?:\s+\d+)+)", line)
             if m:
                 if after_call:
                     after_call = False
                     continue
-                cost[(fn, int(m.group(1), 16))] += int(m.group(2))
+                values = m.group(2).split()  # trailing zero events may be left off
+                if column < len(values):
+                    cost[(fn, int(m.group(1), 16))] += int(values[column])
     return cost, obj_of
 
 
@@ -49,11 +56,13 @@ def main() -> None:
     which.add_argument("--function", help="substring of our function's name (needs --binary)")
     which.add_argument("--hottest-in", help="substring of a shared object's path")
     ap.add_argument("--binary")
+    ap.add_argument("--event", default="Ir",
+                    help="callgrind event to list (Ir; with --cache-sim=yes also DLmr, D1mr...)")
     a = ap.parse_args()
     if a.function and not a.binary:
         ap.error("--function needs --binary")
     rays = next(json.loads(l)[a.ray_set]["rays"] for l in open(a.run_json))
-    cost, obj_of = read_costs(a.callgrind_out)
+    cost, obj_of = read_costs(a.callgrind_out, a.event)
     if a.hottest_in:
         totals = collections.Counter()
         for (f, _), c in cost.items():
@@ -84,7 +93,8 @@ def main() -> None:
         if c:
             total += c
             print(f"{c / rays:7.2f} {m.group(1)}: {m.group(2)[:100]}")
-    print(f"{total / rays:.1f} instructions per ray in {name} ({rays} rays)")
+    what = "instructions" if a.event == "Ir" else a.event
+    print(f"{total / rays:.2f} {what} per ray in {name} ({rays} rays)")
 
 
 if __name__ == "__main__":
