@@ -120,6 +120,10 @@ struct SceneOpts {
     /// Largest leaf of object (and flat) BVHs.
     #[arg(long)]
     max_leaf: Option<u32>,
+    /// Flat mode and `--merge-placed`: keep the large leaves of several
+    /// blocks the SAH prefers (see `LargeLeafSplit`; for comparing).
+    #[arg(long)]
+    no_large_leaf_split: bool,
     /// Re-braiding: reinsertion over the top level after its build, as
     /// RATIO,PASSES[,MAX] (the share of its nodes searched per pass, the
     /// passes, at most MAX nodes per pass; default 0.3,3,4096; "off": none).
@@ -232,6 +236,9 @@ impl SceneOpts {
         if let Some(m) = self.max_leaf {
             p.object_build.max_leaf_size = m;
         }
+        if self.no_large_leaf_split {
+            p.object_build.large_leaf_split = None;
+        }
         if let Some(v) = &self.reinsert {
             r.reinsert = parse_reinsert("--reinsert", v)?;
         }
@@ -282,6 +289,7 @@ impl SceneOpts {
                 self.no_inline_instanced_leaves,
             ),
             ("--merge-placed", self.merge_placed),
+            ("--no-large-leaf-split", self.no_large_leaf_split),
         ];
         v.extend(flags.iter().filter(|f| f.1).map(|f| f.0.to_string()));
         let values = [
@@ -1273,6 +1281,7 @@ mod tests {
             "--open-rounds=2",
             "--no-bake-instances",
             "--max-leaf=4",
+            "--no-large-leaf-split",
         ]
         .map(String::from)
         .to_vec();

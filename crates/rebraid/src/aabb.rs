@@ -106,6 +106,13 @@ impl Aabb {
         e.x * e.y + e.y * e.z + e.z * e.x
     }
 
+    /// Volume; zero for the empty box and for flat boxes.
+    #[inline]
+    pub fn volume(&self) -> f32 {
+        let e = self.extent();
+        e.x * e.y * e.z
+    }
+
     /// The sum of the boxes' half areas over the half area of their union:
     /// about how many of them cover a point of it (1 for boxes side by
     /// side, more as they overlap; 0 when the union has no area). The

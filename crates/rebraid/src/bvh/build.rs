@@ -85,6 +85,61 @@ pub struct BuildParams {
     /// ([`super::collapse`]): by default the SAH-optimal choice of wide
     /// nodes.
     pub collapse: Collapse,
+    /// Large leaves of more than one block split where the SAH would keep
+    /// them ([`LargeLeafSplit`]). On by default; the scene's object builds
+    /// turn it off (it is for trees whose root is the scene: the flat
+    /// mode's and the merged BVH of [`crate::scene::SceneParams::merge_placed`]).
+    pub large_leaf_split: Option<LargeLeafSplit>,
+}
+
+/// A rule for trees over a whole scene, whose rays mostly start inside the
+/// root's box: a leaf of more than one [`BuildParams::leaf_block_size`]
+/// block whose box is a large share of the root's is split when the best
+/// binned split leaves most of its box empty, whatever the SAH says.
+///
+/// Why: the SAH prices a child by its surface area, the chance that a ray
+/// crossing the parent's box from outside crosses the child's. For rays that
+/// start inside the scene that chance is wrong for the largest boxes
+/// (Fabianowski, Fowler and Dingliana, "A Cost Metric for Scene-Interior Ray
+/// Origins", Eurographics 2009 short papers): the library scene's floor and
+/// ceiling (a leaf of 8 triangles in two blocks, whose box is the whole
+/// room) cost two blocks on every ray, since every ray starts inside that
+/// box, while split they are two slabs that hold 3% of the room's volume
+/// each, which a ray reaches only if it heads that way and nothing nearer
+/// stops it. The SAH keeps them together because each slab has 0.79 of the
+/// room's area. Embree's builder splits such leaves too, by another rule:
+/// it fills a wide node by splitting its largest child of more than four
+/// primitives whatever the SAH says (`docs/performance.md`, session 43).
+///
+/// Measured on the flat mode (`MODES=flat SETS=diffuse,primary,shadow
+/// tools/ab-wall.sh 6 "SCENES" off on off`, `off` adding
+/// `--no-large-leaf-split`; one thread, controls 0.99-1.01): the library at
+/// 1M triangles 1.13-1.15 on all three ray sets; at 3M diffuse 1.025
+/// (control 1.012), shadow 1.19, primary 0.95 (its floor and ceiling now
+/// sit under an inner node of the room's box instead of in the root);
+/// samurai diffuse 1.01; the other shared scenes 0.99-1.01. Without the
+/// volume condition it also split leaves into two boxes each nearly the
+/// leaf's (ravenbridge: 0.99 on primary rays). Object BVHs under a
+/// two-level top level do not use it, their roots not being the scene: with
+/// it, re-braided diffuse rays lost 1.7% on samurai and 3.2% on the cocoa
+/// temple (6.5% of its shadow rays) for 2.5-2.6% on nexuiz and openarena
+/// (`docs/performance.md`, session 43).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LargeLeafSplit {
+    /// A leaf is a candidate when its box's surface area exceeds this share
+    /// of the root's.
+    pub min_area_share: f32,
+    /// A candidate is split when the two boxes of the best split together
+    /// hold less than this share of its box's volume.
+    pub max_volume_share: f32,
+}
+
+impl LargeLeafSplit {
+    /// 5% of the root's area, half the leaf's volume.
+    pub const DEFAULT: Self = Self {
+        min_area_share: 0.05,
+        max_volume_share: 0.5,
+    };
 }
 
 impl Default for BuildParams {
@@ -98,6 +153,7 @@ impl Default for BuildParams {
             parallel_threshold: 1024,
             reinsert: ReinsertParams::OFF,
             collapse: Collapse::default(),
+            large_leaf_split: Some(LargeLeafSplit::DEFAULT),
         }
     }
 }
@@ -122,6 +178,16 @@ impl BuildParams {
             ));
         }
         self.reinsert.check()?;
+        if let Some(r) = self.large_leaf_split
+            && !(r.min_area_share >= 0.0
+                && r.min_area_share.is_finite()
+                && r.max_volume_share >= 0.0
+                && r.max_volume_share.is_finite())
+        {
+            return Err(Error::InvalidParameter(format!(
+                "large_leaf_split shares must be finite and >= 0, got {r:?}"
+            )));
+        }
         let costs_ok = self.traversal_cost >= 0.0
             && self.intersection_cost > 0.0
             && self.traversal_cost.is_finite()
@@ -139,9 +205,23 @@ struct Ctx<'a> {
     boxes: &'a [BinBox],
     centroids: &'a [Vec3A],
     params: &'a BuildParams,
+    /// [`BuildParams::large_leaf_split`] for this tree: the area above which
+    /// a leaf is a candidate, and the volume share.
+    large_leaf: Option<(f32, f32)>,
 }
 
 impl Ctx<'_> {
+    /// True when [`LargeLeafSplit`] overrules the SAH's leaf of `blocks`
+    /// blocks over `bounds` in favour of the split `s`.
+    fn splits_large_leaf(&self, blocks: usize, bounds: &Aabb, s: &SplitCandidate) -> bool {
+        let Some((min_area, volume_share)) = self.large_leaf else {
+            return false;
+        };
+        blocks > 1
+            && bounds.half_area() > min_area
+            && s.left_bounds.volume() + s.right_bounds.volume() < volume_share * bounds.volume()
+    }
+
     /// Box and centroid of primitive `p`, an element of the build's `prims`
     /// (unchecked: two compares and branches per primitive in the binning
     /// and partition loops, measured with callgrind in the commit that made
@@ -212,6 +292,9 @@ pub fn build_bvh_aligned(
         boxes,
         centroids,
         params,
+        large_leaf: params
+            .large_leaf_split
+            .map(|r| (r.min_area_share * bounds.half_area(), r.max_volume_share)),
     };
     let nodes = match build_part(&ctx, &mut prims, &mut scratch, 0, bounds, cbounds, 1) {
         // One task built it all: its vector is the tree (no copy).
@@ -532,7 +615,7 @@ fn decide(
             let split_cost = p.traversal_cost * area + p.intersection_cost * s.cost;
             let blocks = n.div_ceil(p.leaf_block_size as usize);
             let leaf_cost = p.intersection_cost * blocks as f32 * area;
-            if fits_leaf && leaf_cost <= split_cost {
+            if fits_leaf && leaf_cost <= split_cost && !ctx.splits_large_leaf(blocks, &bounds, &s) {
                 return Decision::Leaf;
             }
             let axis = s.axis;
@@ -689,5 +772,128 @@ pub(crate) fn compact_slots(
         out[i].index = new as u32;
         stack.push(new + 1);
         stack.push(new);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A closed room (floor and ceiling slabs, two triangles per face) around
+    /// small triangles scattered inside it: the case [`LargeLeafSplit`] is
+    /// for. Returns the boxes and centroids of its triangles.
+    fn room() -> (Vec<Aabb>, Vec<Vec3>) {
+        let mut tris: Vec<[Vec3; 3]> = Vec::new();
+        for y in [-0.1f32, 0.0, 5.0, 5.1] {
+            let (a, b, c, d) = (
+                Vec3::new(0.0, y, 0.0),
+                Vec3::new(100.0, y, 0.0),
+                Vec3::new(100.0, y, 50.0),
+                Vec3::new(0.0, y, 50.0),
+            );
+            tris.push([a, b, c]);
+            tris.push([a, c, d]);
+        }
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for _ in 0..4000 {
+            let c = Vec3::new(100.0 * next(), 0.2 + 4.3 * next(), 50.0 * next());
+            let mut corner = || c + Vec3::new(next(), next(), next()) * 0.5;
+            tris.push([corner(), corner(), corner()]);
+        }
+        tris.iter()
+            .map(|t| {
+                let b = t.iter().fold(Aabb::EMPTY, |b, &p| b.grow(p));
+                (b, b.center())
+            })
+            .unzip()
+    }
+
+    /// The largest half area of a leaf of more than one block, over the
+    /// root's.
+    fn largest_multi_block_leaf(bvh: &Bvh, block: u32) -> f32 {
+        let root = bvh.nodes[0].bounds().half_area();
+        bvh.nodes
+            .iter()
+            .filter(|n| n.is_leaf() && n.count > block)
+            .map(|n| n.bounds().half_area() / root)
+            .fold(0.0, f32::max)
+    }
+
+    #[test]
+    fn large_leaf_split_takes_the_room_apart() {
+        let (boxes, centroids) = room();
+        let with = BuildParams::default();
+        let without = BuildParams {
+            large_leaf_split: None,
+            ..BuildParams::default()
+        };
+        let a = build_bvh(&boxes, &centroids, &with).unwrap();
+        let b = build_bvh(&boxes, &centroids, &without).unwrap();
+        a.validate(&boxes).unwrap();
+        b.validate(&boxes).unwrap();
+        // The SAH alone keeps floor and ceiling in one leaf of two blocks
+        // whose box is the room's...
+        let largest = largest_multi_block_leaf(&b, with.leaf_block_size);
+        assert!(largest > 0.9, "{largest}");
+        // ...which the rule splits into slabs: no leaf of two blocks is left
+        // above its area threshold.
+        let limit = LargeLeafSplit::DEFAULT.min_area_share;
+        assert!(largest_multi_block_leaf(&a, with.leaf_block_size) <= limit);
+    }
+
+    #[test]
+    fn large_leaf_split_leaves_overlapping_splits_alone() {
+        // Two triangles of the same large box in each of three places: any
+        // split of a leaf over them keeps nearly all of its volume, so the
+        // rule keeps the SAH's choice.
+        let mut boxes = Vec::new();
+        for i in 0..6 {
+            let o = (i % 3) as f32 * 0.01;
+            boxes.push(Aabb {
+                min: Vec3::splat(o),
+                max: Vec3::splat(10.0 + o),
+            });
+        }
+        let centroids: Vec<Vec3> = boxes.iter().map(|b| b.center()).collect();
+        let with = build_bvh(&boxes, &centroids, &BuildParams::default()).unwrap();
+        let without = build_bvh(
+            &boxes,
+            &centroids,
+            &BuildParams {
+                large_leaf_split: None,
+                ..BuildParams::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(with.nodes, without.nodes);
+    }
+
+    #[test]
+    fn large_leaf_split_shares_are_checked() {
+        for bad in [-1.0, f32::NAN, f32::INFINITY] {
+            for r in [
+                LargeLeafSplit {
+                    min_area_share: bad,
+                    ..LargeLeafSplit::DEFAULT
+                },
+                LargeLeafSplit {
+                    max_volume_share: bad,
+                    ..LargeLeafSplit::DEFAULT
+                },
+            ] {
+                let p = BuildParams {
+                    large_leaf_split: Some(r),
+                    ..BuildParams::default()
+                };
+                assert!(p.check().is_err(), "{r:?}");
+            }
+        }
     }
 }

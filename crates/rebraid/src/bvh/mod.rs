@@ -19,7 +19,9 @@ mod validate;
 pub mod wide;
 
 pub use binning::BinBox;
-pub use build::{BuildParams, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh, build_bvh_aligned};
+pub use build::{
+    BuildParams, LargeLeafSplit, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh, build_bvh_aligned,
+};
 pub(crate) use build::{compact_slots, split_slots};
 pub use collapse::Collapse;
 pub use node::BvhNode;

@@ -855,6 +855,12 @@ impl Scene {
                 }
             }
             let params = &self.params.object_build;
+            // An object's root is not the scene: the large-leaf rule is for
+            // the merged BVH (and the flat mode's), not for objects.
+            let object_params = &BuildParams {
+                large_leaf_split: None,
+                ..params.clone()
+            };
             // The whole object structure (binary build, wide collapse,
             // Triangle4 packing) per task: the collapse and packing were a
             // serial 17% of `library --scale 1`'s object builds before.
@@ -905,13 +911,14 @@ impl Scene {
                                     .object_to_world;
                                 // A failure (vertices moved to infinity by a huge
                                 // scale): the instance stays one.
-                                let bvh = MeshBvh::build_transformed(&o.mesh, xf, params).ok()?;
+                                let bvh =
+                                    MeshBvh::build_transformed(&o.mesh, xf, object_params).ok()?;
                                 Some((inst, ObjectBvh::with_collapse(bvh, params.collapse)))
                             });
                             let b: Built = match baked {
                                 Some((inst, bvh)) => (i, bake, Some(inst), Ok(bvh)),
                                 None => {
-                                    let r = MeshBvh::build(&o.mesh, params)
+                                    let r = MeshBvh::build(&o.mesh, object_params)
                                         .map(|b| ObjectBvh::with_collapse(b, params.collapse));
                                     (i, bake, None, r)
                                 }
