@@ -120,10 +120,13 @@ pub struct BuildParams {
 /// samurai diffuse 1.01; the other shared scenes 0.99-1.01. Without the
 /// volume condition it also split leaves into two boxes each nearly the
 /// leaf's (ravenbridge: 0.99 on primary rays). Object BVHs under a
-/// two-level top level do not use it, their roots not being the scene: with
-/// it, re-braided diffuse rays lost 1.7% on samurai and 3.2% on the cocoa
-/// temple (6.5% of its shadow rays) for 2.5-2.6% on nexuiz and openarena
-/// (`docs/performance.md`, session 43).
+/// two-level top level do not use it, their roots not being the scene:
+/// with a candidate area of 5% of the scene's (and no volume condition),
+/// re-braided diffuse rays lost 1.7% on samurai and 3.2% on the cocoa temple
+/// (6.5% of its shadow rays) for 2.5-2.6% on nexuiz and openarena; with 5%
+/// of each object's own area and the volume condition, they took 0.2-1.3%
+/// more instructions on four of seven scenes (`docs/performance.md`,
+/// session 43).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LargeLeafSplit {
     /// A leaf is a candidate when its box's surface area exceeds this share
