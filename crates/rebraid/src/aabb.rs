@@ -187,6 +187,19 @@ mod tests {
     }
 
     #[test]
+    fn volume_of_boxes_empty_and_flat() {
+        assert_eq!(
+            Aabb::new(Vec3::ZERO, Vec3::new(1.0, 2.0, 3.0)).volume(),
+            6.0
+        );
+        assert_eq!(Aabb::EMPTY.volume(), 0.0);
+        assert_eq!(
+            Aabb::new(Vec3::ZERO, Vec3::new(4.0, 0.0, 3.0)).volume(),
+            0.0
+        );
+    }
+
+    #[test]
     fn overlap_tests() {
         let a = Aabb::new(Vec3::ZERO, Vec3::ONE);
         let b = Aabb::new(Vec3::splat(1.0), Vec3::splat(2.0));
