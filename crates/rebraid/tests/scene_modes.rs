@@ -734,6 +734,88 @@ fn reinserted_trees_match_brute_force_in_every_mode() {
     }
 }
 
+/// The flat and merged builds with and without
+/// `BuildParams::large_leaf_split` (on by default), with every kernel: the
+/// same answers as the brute force, on the tree-option cases and on a room
+/// whose floor and ceiling the rule splits; and the rule reaches the room's
+/// flat tree (a lower wide SAH cost: the slabs leave the room-sized leaf).
+#[test]
+fn large_leaf_split_on_and_off_match_brute_force_in_every_mode() {
+    let with = |kernel, merge_placed, rule: bool| {
+        let mut p = SceneParams {
+            kernel: Some(kernel),
+            merge_placed,
+            ..params(AccelMode::Flat)
+        };
+        if !rule {
+            p.object_build.large_leaf_split = None;
+        }
+        p
+    };
+    let mut cases: Vec<_> = tree_option_cases(970).into_iter().collect();
+    let room = room_model(971);
+    let rays = random_rays(
+        &mut rng(972),
+        &room.world(),
+        1200,
+        SCENE_LO,
+        SCENE_HI.with_y(4.0),
+    );
+    cases.push((room, "room", rays));
+    for (model, what, rays) in &cases {
+        for kernel in rebraid::bvh::Kernel::available() {
+            for merge in [false, true] {
+                for rule in [false, true] {
+                    let what =
+                        format!("large-leaf split {rule}, merged {merge}, {what} {kernel:?}");
+                    all_modes_vs_brute_with(model, rays, &what, with(kernel, merge, rule));
+                }
+            }
+        }
+        let wide_sah = |p: SceneParams| {
+            let mut scene = model.to_scene(p);
+            scene.set_mode(AccelMode::Flat);
+            scene.commit().unwrap();
+            scene.stats().wide_sah_cost
+        };
+        let best = rebraid::bvh::Kernel::best();
+        let (on, off) = (
+            wide_sah(with(best, false, true)),
+            wide_sah(with(best, false, false)),
+        );
+        eprintln!("{what}: flat wide SAH with the rule {on:.4}, without {off:.4}");
+        if *what == "room" {
+            assert!(on < off, "{what}: the rule did not split the room's leaf");
+        }
+    }
+}
+
+/// A low, wide room (floor and ceiling slabs over the scene box's width and
+/// depth, two triangles per face, one object) around four objects of small
+/// triangles inside it: the SAH alone keeps the slabs in one leaf of two
+/// blocks whose box is the room's ([`rebraid::bvh::LargeLeafSplit`]).
+fn room_model(seed: u64) -> Model {
+    let (lo, mut hi) = (SCENE_LO, SCENE_HI);
+    hi.y = lo.y + 4.0;
+    let mut tris = Vec::new();
+    for y in [lo.y, lo.y + 0.1, hi.y - 0.1, hi.y] {
+        let c = [(lo.x, lo.z), (hi.x, lo.z), (hi.x, hi.z), (lo.x, hi.z)]
+            .map(|(x, z)| Vec3::new(x, y, z));
+        tris.push([c[0], c[1], c[2]]);
+        tris.push([c[0], c[2], c[3]]);
+    }
+    let mut m = Model::default();
+    m.objects
+        .insert(0, (TriangleMesh::from_triangles(&tris).unwrap(), true));
+    let mut rng = rng(seed);
+    let inner = Vec3::new(0.0, 0.5, 0.0);
+    for i in 1..5 {
+        let mesh = soup(&mut rng, 300, lo + inner, hi - inner, 0.7);
+        m.objects.insert(i, (mesh, true));
+    }
+    m
+}
+
 /// Embree's greedy collapse (`Collapse::Greedy`) for every object, flat and
 /// top-level tree, with every kernel: the same answers as the brute force;
 /// and the default, SAH-optimal collapse gives each mode a wide SAH cost no
