@@ -701,6 +701,15 @@ fn tree_option_cases(seed: u64) -> [(Model, &'static str, Vec<Ray>); 2] {
     ]
 }
 
+/// The statistics of `model`'s scene built with `p` and committed in `mode`:
+/// how the tree-option tests see that an option reached the trees.
+fn committed_stats(model: &Model, p: SceneParams, mode: AccelMode) -> rebraid::SceneStats {
+    let mut scene = model.to_scene(p);
+    scene.set_mode(mode);
+    scene.commit().unwrap();
+    scene.stats()
+}
+
 /// Reinsertion over every object and flat BVH (`BuildParams::reinsert`)
 /// and a heavy one over the re-braided top level, with every kernel: the
 /// trees change, the answers do not.
@@ -721,12 +730,7 @@ fn reinserted_trees_match_brute_force_in_every_mode() {
             all_modes_vs_brute_with(model, rays, &what, reinserted(kernel));
         }
         // The option reaches the trees: the object trees' SAH is lower.
-        let sah = |p: SceneParams| {
-            let mut scene = model.to_scene(p);
-            scene.set_mode(AccelMode::Flat);
-            scene.commit().unwrap();
-            scene.stats().sah_cost
-        };
+        let sah = |p| committed_stats(model, p, AccelMode::Flat).sah_cost;
         let best = rebraid::bvh::Kernel::best();
         let plain = sah(params(AccelMode::Flat));
         let better = sah(reinserted(best));
@@ -772,12 +776,7 @@ fn large_leaf_split_on_and_off_match_brute_force_in_every_mode() {
                 }
             }
         }
-        let wide_sah = |p: SceneParams| {
-            let mut scene = model.to_scene(p);
-            scene.set_mode(AccelMode::Flat);
-            scene.commit().unwrap();
-            scene.stats().wide_sah_cost
-        };
+        let wide_sah = |p| committed_stats(model, p, AccelMode::Flat).wide_sah_cost;
         let best = rebraid::bvh::Kernel::best();
         let (on, off) = (
             wide_sah(with(best, false, true)),
@@ -838,10 +837,8 @@ fn both_collapse_rules_match_brute_force_in_every_mode() {
             all_modes_vs_brute_with(model, rays, &what, collapsed(kernel, Collapse::Greedy));
         }
         let wide_sah = |collapse, mode| {
-            let mut scene = model.to_scene(collapsed(rebraid::bvh::Kernel::best(), collapse));
-            scene.set_mode(mode);
-            scene.commit().unwrap();
-            scene.stats().wide_sah_cost
+            let p = collapsed(rebraid::bvh::Kernel::best(), collapse);
+            committed_stats(model, p, mode).wide_sah_cost
         };
         for mode in [AccelMode::Flat, AccelMode::TwoLevel, AccelMode::Rebraided] {
             let greedy = wide_sah(Collapse::Greedy, mode);
