@@ -11,10 +11,16 @@
 //! Ray Distributions on the Intel MIC Architecture", which Embree's stream
 //! API also uses).
 //!
-//! Every lane's box test is the single-ray AVX2 test's arithmetic in the
-//! same order (the same [`FmaSlab`] constants, one FMA per plane, the same
-//! `max`/`min` chain and [`ROBUST_FAR`] pad), so a ray enters exactly the
-//! boxes it enters alone. A leaf that most of a packet reaches tests one
+//! Every lane's box test computes the single-ray AVX2 test's distances
+//! (the same [`FmaSlab`] constants, one FMA per plane, the same
+//! [`ROBUST_FAR`] pad) and orders them as floats, where the single-ray
+//! test orders them as integers (its latency chain is shorter so, see
+//! `Avx2Tester::test_known` in `simd.rs`; the packet's tests are many and
+//! independent, and as integers shadow packets took 2-6% longer, session
+//! 45). The two enter the same boxes at the same distances, so a ray
+//! enters exactly the boxes it enters alone, but for one case that holds
+//! no hit: a box wholly behind the ray's origin whose far distance
+//! underflows to `-0.0`, which the single-ray test skips. A leaf that most of a packet reaches tests one
 //! triangle for all its rays at once ([`TrianglePacket`], the four-triangle
 //! test's operations per lane), other leaves one ray at a time: either way
 //! a triangle is hit exactly when the single-ray test hits it, so an
@@ -66,11 +72,12 @@ pub fn octant(ray: &Ray) -> usize {
 }
 
 /// True when a valid ray can join a packet: its one-FMA slab constants are
-/// finite (no zero direction component), as the single-ray AVX2 test
-/// requires for its fast path; other rays are traced alone.
+/// finite (no zero direction component) and its `t_min` is at least
+/// `+0.0`, as the single-ray AVX2 test requires for its fast path; other
+/// rays are traced alone.
 #[inline(always)]
 pub fn packetable(ray: &Ray) -> bool {
-    FmaSlab::new(ray.origin, ray.dir).is_finite()
+    FmaSlab::new(ray.origin, ray.dir).is_finite() && !ray.t_min.is_sign_negative()
 }
 
 /// Rays whose directions are within this angle's cosine of the first
@@ -174,6 +181,7 @@ impl Packet8 {
             ];
             let t_max = _mm256_permute2f128_ps::<0x31>(u3, u7);
             let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX));
+            let sign = _mm256_set1_ps(-0.0);
             let two_eps = _mm256_set1_ps(2.0 * f32::EPSILON);
             let zero = _mm256_setzero_ps();
             // `0 * x` is zero for a finite `x`, NaN otherwise (as
@@ -186,13 +194,18 @@ impl Packet8 {
                 let inv = _mm256_div_ps(_mm256_set1_ps(1.0), dir[a]);
                 let oi = _mm256_mul_ps(origin[a], inv);
                 let pad = _mm256_mul_ps(_mm256_and_ps(oi, abs_mask), two_eps);
-                let (near, far) = (_mm256_add_ps(oi, pad), _mm256_sub_ps(oi, pad));
+                // The far offset as `FmaSlab`'s: `-(pad - oi)`, `-0.0`
+                // where zero.
+                let near = _mm256_add_ps(oi, pad);
+                let far = _mm256_xor_ps(_mm256_sub_ps(pad, oi), sign);
                 for x in [inv, near, far] {
                     nonfinite = _mm256_add_ps(nonfinite, _mm256_mul_ps(zero, x));
                 }
                 (inv_dir[a], near_offset[a], far_offset[a]) = (inv, near, far);
             }
-            let finite = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(nonfinite, zero)) == 0xff;
+            // And no lane's `t_min` with its sign bit set (`packetable`).
+            let finite = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(nonfinite, zero)) == 0xff
+                && _mm256_movemask_ps(t_min) == 0;
             let first = FmaSlab::new(rays[0].origin, rays[0].dir);
             debug_assert!(rays.iter().all(|r| octant(r) == octant(rays[0])));
             let packet = Self {

@@ -177,6 +177,11 @@ impl<const W: usize> BoxTester<W> for ScalarTester {
 /// misses a box the exact sub-and-multiply test enters (unit-tested
 /// against it). Public so that the experiments in `benches/` use the same
 /// constants as the library's kernel.
+///
+/// A zero far offset is `-0.0`, so that the far distances the AVX2
+/// kernels compute (`plane * inv_dir - far_offset`) are `-0.0` only by
+/// underflow: their integer ordering of distances (see `Avx2Tester`)
+/// needs no other sign of zero.
 #[derive(Clone, Copy, Debug)]
 pub struct FmaSlab {
     pub inv_dir: Vec3,
@@ -201,7 +206,10 @@ impl FmaSlab {
         Self {
             inv_dir: inv_dir.into(),
             near_offset: (oi + pad).into(),
-            far_offset: (oi - pad).into(),
+            // `oi - pad` as `-(pad - oi)`: the same bits, but `-0.0` where
+            // it is zero, so that `plane * inv_dir - far_offset` is never
+            // `-0.0` but by underflow (see `Avx2Tester::test_known`).
+            far_offset: (-(pad - oi)).into(),
             near_plane,
             far_plane,
         }
@@ -224,11 +232,17 @@ impl FmaSlab {
 /// included), the index into [`WideNode::planes`] of each axis's near and
 /// far plane (Williams et al. 2005: the near plane of a negative axis is
 /// the box's maximum).
-const OCTANT_PLANES: [([usize; 3], [usize; 3]); 8] = octant_planes(1);
+///
+/// `static`, not `const`: a `const` array indexed at run time is a value
+/// LLVM may build anew at each use, and in one build of session 45 it
+/// copied this table onto the stack for every ray (a 384-byte `memcpy`
+/// call before each ray's walk: diffuse rays 3-20% slower).
+static OCTANT_PLANES: [([usize; 3], [usize; 3]); 8] = octant_planes(1);
 
 /// [`OCTANT_PLANES`] as byte offsets of the planes in an 8-wide node
 /// (32 bytes each): what the AVX2 tester adds to a node's address.
-const OCTANT_PLANE_BYTES: [([usize; 3], [usize; 3]); 8] = octant_planes(32);
+/// (`static` for the reason [`OCTANT_PLANES`] is).
+static OCTANT_PLANE_BYTES: [([usize; 3], [usize; 3]); 8] = octant_planes(32);
 
 /// The row of the octant tables for a ray with these reciprocal direction
 /// components: bit `a` is the sign bit of `inv_dir[a]`.
@@ -408,13 +422,20 @@ pub(crate) mod x86 {
                 let oi = _mm_mul_ps(origin, inv_dir);
                 let pad = _mm_mul_ps(_mm_andnot_ps(sign, oi), _mm_set1_ps(2.0 * f32::EPSILON));
                 let near_offset = _mm_add_ps(oi, pad);
-                let far_offset = _mm_sub_ps(oi, pad);
+                // `-(pad - oi)` is `FmaSlab`'s far offset (`-0.0` when
+                // zero); kept negated, it is `pad - oi`.
+                let neg_far_offset = _mm_sub_ps(pad, oi);
                 // `FmaSlab::is_finite`: `0 * x` is NaN exactly for a
                 // non-finite `x`.
                 let zero = _mm_setzero_ps();
                 let z = |v: __m128| _mm_mul_ps(v, zero);
-                let sum = _mm_add_ps(_mm_add_ps(z(inv_dir), z(near_offset)), z(far_offset));
-                let exact = _mm_movemask_ps(_mm_cmpeq_ps(sum, zero)) & 7 != 7;
+                let sum = _mm_add_ps(_mm_add_ps(z(inv_dir), z(near_offset)), z(neg_far_offset));
+                // A `t_min` with its sign bit set (negative, or `-0.0`)
+                // takes the exact path too: the fast path orders distances
+                // as integers, which needs `t_min >= +0.0` (see
+                // `test_known`).
+                let exact = _mm_movemask_ps(_mm_cmpeq_ps(sum, zero)) & 7 != 7
+                    || ray.t_min.is_sign_negative();
                 let octant = (_mm_movemask_ps(inv_dir) & 7) as usize;
                 let (near, far) = super::OCTANT_PLANE_BYTES[octant];
                 let splat = |v: __m128| -> [__m256; 3] {
@@ -429,7 +450,7 @@ pub(crate) mod x86 {
                 Self {
                     inv_dir: splat(inv_dir),
                     neg_near_offset: splat(_mm_xor_ps(near_or_origin, sign)),
-                    neg_far_offset: splat(_mm_xor_ps(far_offset, sign)),
+                    neg_far_offset: splat(neg_far_offset),
                     near,
                     far,
                     t_min: bytemuck::cast([ray.t_min; 8]),
@@ -504,7 +525,10 @@ pub(crate) mod x86 {
             unsafe {
                 let plane = |off: usize| _mm256_loadu_ps(planes.add(off).cast::<f32>());
                 let mut near = self.t_min;
-                let mut far = _mm256_set1_ps(t_max);
+                // `+ 0.0` turns a `-0.0` (a hit at `t = -0.0`) into `+0.0`,
+                // as the integer compare below needs; off the node's
+                // latency chain (`t_max` is known before the node loads).
+                let mut far = _mm256_set1_ps(t_max + 0.0);
                 if EXACT {
                     // `neg_near_offset` holds minus the origin on this
                     // path: `p + (-o)` is `p - o`, bit for bit.
@@ -523,14 +547,40 @@ pub(crate) mod x86 {
                         far = _mm256_min_ps(far, tf);
                     }
                 } else {
-                    for a in 0..3 {
-                        let pn = plane(self.near[a]);
-                        let pf = plane(self.far[a]);
-                        let tn = _mm256_fmadd_ps(pn, self.inv_dir[a], self.neg_near_offset[a]);
-                        let tf = _mm256_fmadd_ps(pf, self.inv_dir[a], self.neg_far_offset[a]);
-                        near = _mm256_max_ps(near, tn);
-                        far = _mm256_min_ps(far, tf);
-                    }
+                    // The distances ordered as integers: `vpmaxsd` and
+                    // `vpminsd` take one cycle where `vmaxps`/`vminps` take
+                    // four on Intel cores (one on AMD's Zen), and a tree of
+                    // two levels instead of a chain of three, as Embree's
+                    // AVX2 BVH8 test does (`maxi`/`mini` over the three
+                    // axes and the ray's interval). The same values as the
+                    // float `max`/`min`: `t_min` is at least `+0.0` here
+                    // (a sign bit takes the exact path), the non-negative
+                    // floats order as their bits do, and every negative
+                    // float (its bits a negative integer) is below them,
+                    // so `near` is the float maximum; `far` is the float
+                    // minimum whenever that is non-negative, and negative
+                    // whenever that is (the box then lies behind the ray
+                    // and is missed either way).
+                    let tn = |a: usize| {
+                        _mm256_castps_si256(_mm256_fmadd_ps(
+                            plane(self.near[a]),
+                            self.inv_dir[a],
+                            self.neg_near_offset[a],
+                        ))
+                    };
+                    let tf = |a: usize| {
+                        _mm256_castps_si256(_mm256_fmadd_ps(
+                            plane(self.far[a]),
+                            self.inv_dir[a],
+                            self.neg_far_offset[a],
+                        ))
+                    };
+                    let n01 = _mm256_max_epi32(tn(0), tn(1));
+                    let n2 = _mm256_max_epi32(tn(2), _mm256_castps_si256(near));
+                    near = _mm256_castsi256_ps(_mm256_max_epi32(n01, n2));
+                    let f01 = _mm256_min_epi32(tf(0), tf(1));
+                    let f2 = _mm256_min_epi32(tf(2), _mm256_castps_si256(far));
+                    far = _mm256_castsi256_ps(_mm256_min_epi32(f01, f2));
                 }
                 far = _mm256_mul_ps(far, _mm256_set1_ps(ROBUST_FAR));
                 // `near < inf` only matters on the exact path (a zero
@@ -539,7 +589,22 @@ pub(crate) mod x86 {
                 // and `-inf`. There, `near` is `+inf` only for a box beyond
                 // the `f32` range of an unbounded ray, where no hit can lie:
                 // entering it costs a test, never an answer.
-                let mut hit = _mm256_cmp_ps::<_CMP_LE_OQ>(near, far);
+                //
+                // The fast path compares as integers too (one cycle against
+                // four): `near` is non-negative, so `near <= far` holds as
+                // integers exactly when it holds as floats, except for a
+                // `far` of `-0.0` with `near` zero. `t_max` is made `+0.0`
+                // above and the far offsets are never `-0.0` (`FmaSlab`),
+                // so such a `far` comes only from a distance below zero
+                // that underflowed: a box wholly behind the ray's origin,
+                // where no hit at `t >= 0` lies.
+                let mut hit = if EXACT {
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(near, far)
+                } else {
+                    let beyond =
+                        _mm256_cmpgt_epi32(_mm256_castps_si256(near), _mm256_castps_si256(far));
+                    _mm256_castsi256_ps(_mm256_xor_si256(beyond, _mm256_set1_epi32(-1)))
+                };
                 if EXACT {
                     hit = _mm256_and_ps(
                         hit,
@@ -1734,7 +1799,15 @@ mod tests {
                 let pad = oi.abs() * (2.0 * f32::EPSILON);
                 assert_eq!(s.inv_dir[a].to_bits(), inv.to_bits());
                 assert_eq!(s.near_offset[a].to_bits(), (oi + pad).to_bits());
-                assert_eq!(s.far_offset[a].to_bits(), (oi - pad).to_bits());
+                // `oi - pad`, but `-0.0` where that is zero (and a NaN of
+                // either sign where it is NaN: such a ray takes the exact
+                // path, which does not read it).
+                let far = if oi - pad == 0.0 { -0.0 } else { oi - pad };
+                if far.is_nan() {
+                    assert!(s.far_offset[a].is_nan());
+                } else {
+                    assert_eq!(s.far_offset[a].to_bits(), far.to_bits());
+                }
                 let (near, far) = if inv.is_sign_negative() {
                     (a + 3, a)
                 } else {
@@ -1761,8 +1834,10 @@ mod tests {
                 let avx = unsafe { x86::Avx2Tester::new(&ray) };
                 let ([inv, neg_near, neg_far], near, far, t_min, exact) = avx.constants();
                 let bits = |v: [f32; 3]| v.map(f32::to_bits);
-                let near_or_origin = if finite { s.near_offset } else { origin };
-                assert_eq!(exact, !finite, "{origin} {dir}");
+                // A `t_min` with its sign bit set takes the exact path too.
+                let want_exact = !finite || ray.t_min.is_sign_negative();
+                let near_or_origin = if want_exact { origin } else { s.near_offset };
+                assert_eq!(exact, want_exact, "{origin} {dir} {}", ray.t_min);
                 assert_eq!(bits(inv), bits(s.inv_dir.to_array()));
                 assert_eq!(bits(neg_near), bits((-near_or_origin).to_array()));
                 assert_eq!(bits(neg_far), bits((-s.far_offset).to_array()));
@@ -2018,5 +2093,91 @@ mod tests {
         }
         assert!(exact_hits > 10_000);
         eprintln!("{extra} boxes entered beyond the {exact_hits} of the exact test");
+    }
+
+    /// The AVX2 fast path orders distances as integers (`vpmaxsd`,
+    /// `vpminsd`, `vpcmpgtd`); the float ordering of the same FMA distances
+    /// (the test before session 45, written out lane by lane here) enters
+    /// the same boxes at the same distances. Signed zeros and tiny values
+    /// in the planes, the origins and the ray interval are where the two
+    /// orderings could part; the one case the integer test may skip (a far
+    /// distance below zero that underflows to `-0.0` with `near` zero: a
+    /// box wholly behind the origin) is counted, and must stay rare.
+    #[test]
+    fn avx2_integer_ordering_enters_what_the_float_ordering_enters() {
+        if !Kernel::Avx2.is_available() {
+            eprintln!("skipped: no AVX2 on this CPU");
+            return;
+        }
+        let mut rng = Pcg64::seed_from_u64(45);
+        let special = [0.0f32, -0.0, 1e-30, -1e-30, 1e-38, 1.0, -1.0, 3.0];
+        let (mut fast, mut entered, mut underflow) = (0u32, 0u32, 0u32);
+        for i in 0..40_000 {
+            let mut v = |range: f32| {
+                if i % 2 == 0 {
+                    special[rng.gen_range(0..special.len())]
+                } else {
+                    rng.gen_range(-range..range)
+                }
+            };
+            let mut node = WideNode::<8>::EMPTY;
+            for c in 0..7 {
+                let a = Vec3::new(v(4.0), v(4.0), v(4.0));
+                let b = Vec3::new(v(4.0), v(4.0), v(4.0));
+                node.set_child(c, &Aabb::new(a.min(b), a.max(b)), c as u32);
+            }
+            let dir = Vec3::new(v(1.0), v(1.0), v(1.0));
+            let ray = Ray {
+                origin: Vec3::new(v(4.0), v(4.0), v(4.0)),
+                t_min: [0.0, 0.0, 1e-30, 0.5][i % 4],
+                dir,
+                t_max: [f32::INFINITY, 0.0, -0.0, 2.0][(i / 4) % 4],
+            };
+            if !ray.is_valid() {
+                continue;
+            }
+            // SAFETY: the AVX2 level checked above.
+            let tester = unsafe { x86::Avx2Tester::new(&ray) };
+            let ([inv, neg_near, neg_far], near_plane, far_plane, t_min, exact) =
+                tester.constants();
+            if exact {
+                continue;
+            }
+            fast += 1;
+            let mut dist = [0.0f32; 8];
+            let got = tester.test(&node, ray.t_max, &mut dist);
+            let planes = node.planes();
+            for c in 0..8 {
+                // The float ordering: `vmaxps`/`vminps` in a chain from the
+                // ray's interval, then the pad and `vcmpps` (`<=`).
+                let (mut near, mut far) = (t_min, ray.t_max);
+                for a in 0..3 {
+                    let tn = planes[near_plane[a] / 32][c].mul_add(inv[a], neg_near[a]);
+                    let tf = planes[far_plane[a] / 32][c].mul_add(inv[a], neg_far[a]);
+                    near = if near > tn { near } else { tn };
+                    far = if far < tf { far } else { tf };
+                }
+                let want = near <= far * ROBUST_FAR;
+                let hit = got >> c & 1 == 1;
+                if want && !hit {
+                    // Only a far distance that underflowed to `-0.0`.
+                    assert!(
+                        far == 0.0 && near == 0.0,
+                        "child {c} missed: {ray:?}, near {near} far {far}"
+                    );
+                    underflow += 1;
+                    continue;
+                }
+                assert_eq!(hit, want, "child {c}: {ray:?}, near {near} far {far}");
+                if hit {
+                    // The same distance (up to the sign of a zero).
+                    assert_eq!(dist[c], near, "child {c}: {ray:?}");
+                    entered += 1;
+                }
+            }
+        }
+        eprintln!("{fast} fast-path rays, {entered} boxes entered, {underflow} underflows");
+        assert!(fast > 10_000 && entered > 10_000, "{fast} {entered}");
+        assert!(underflow * 1000 < entered, "{underflow} of {entered}");
     }
 }
