@@ -60,6 +60,49 @@ pub struct BenchRow {
     /// for Embree's rows and the flat mode).
     #[serde(default)]
     pub top_phases_ms: TopPhases,
+    /// The CPU the row was measured on ([`machine_description`]), written
+    /// into `bench --json` files.
+    #[serde(default)]
+    pub machine: String,
+}
+
+/// The CPU's model name (from `/proc/cpuinfo` where there is one), its
+/// logical CPUs and the widest vector extension it has, e.g. `Intel(R)
+/// Xeon(R) Processor, 2 logical CPUs, AVX-512F`: Embree picks its kernels
+/// by the last (our kernels stop at AVX2).
+pub fn machine_description() -> String {
+    let model = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|info| {
+            info.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split_once(':'))
+                .map(|(_, m)| m.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".to_string());
+    let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let widest = widest_vector_extension();
+    format!("{model}, {cpus} logical CPUs, {widest}")
+}
+
+#[cfg(target_arch = "x86_64")]
+fn widest_vector_extension() -> &'static str {
+    if std::arch::is_x86_feature_detected!("avx512f") {
+        "AVX-512F"
+    } else if std::arch::is_x86_feature_detected!("avx2")
+        && std::arch::is_x86_feature_detected!("fma")
+    {
+        "AVX2+FMA"
+    } else if std::arch::is_x86_feature_detected!("sse4.1") {
+        "SSE4.1"
+    } else {
+        "SSE2"
+    }
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+fn widest_vector_extension() -> &'static str {
+    "no x86 vector extension"
 }
 
 /// Where a top level's build went, in milliseconds: the binned build with
@@ -442,6 +485,7 @@ pub fn bench_scene(
                         &times[i],
                     ),
                     top_phases_ms: TopPhases::median_of(&phases[i]),
+                    machine: String::new(),
                 });
             }
             Ok(out)

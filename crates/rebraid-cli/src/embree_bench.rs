@@ -114,6 +114,7 @@ pub fn run_worker(
             camera: String::new(),
             best,
             top_phases_ms: Default::default(),
+            machine: String::new(),
         })
     })
 }

@@ -739,6 +739,11 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
     // Without Embree, one cycle of `reps` repetitions (the modes alternate
     // inside it); with Embree, `reps` cycles of one repetition each.
     let (cycles, reps_per_cycle) = if a.embree { (a.reps, 1) } else { (1, a.reps) };
+    // Which machine: the project's build machine has changed between
+    // sessions (AMD with AVX2 only, Intel with AVX-512), and a figure is
+    // read against the CPU it ran on.
+    let machine = bench::machine_description();
+    println!("machine: {machine}");
     let mut rows: Vec<BenchRow> = Vec::new();
     let mut all_cycles: Vec<Vec<BenchRow>> = vec![Vec::new(); cycles];
     for input in &inputs {
@@ -855,7 +860,11 @@ fn run_bench(a: BenchArgs) -> anyhow::Result<()> {
     if let Some(p) = &a.json {
         let mut s = String::new();
         for r in &rows {
-            s.push_str(&serde_json::to_string(r)?);
+            let r = BenchRow {
+                machine: machine.clone(),
+                ..r.clone()
+            };
+            s.push_str(&serde_json::to_string(&r)?);
             s.push('\n');
         }
         std::fs::write(p, s).with_context(|| format!("writing {}", p.display()))?;

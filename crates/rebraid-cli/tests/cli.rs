@@ -298,8 +298,15 @@ fn bench_library_writes_json_and_modes_agree() {
     assert!(!out.contains("flat / embree"), "{out}");
     let rows = read_rows(&json);
     assert_eq!(rows.len(), 6, "one row per (mode, threads): {rows:#?}");
+    // Every row names the CPU it ran on, as the output's first line does.
+    let machine = out
+        .lines()
+        .find_map(|l| l.strip_prefix("machine: "))
+        .unwrap_or_else(|| panic!("no machine line:\n{out}"));
+    assert!(machine.contains("logical CPUs"), "{machine}");
     for r in &rows {
         assert_eq!(r["scene"], "library@0.02");
+        assert_eq!(r["machine"], machine);
         check_row_keys(r, 64 * 36);
     }
     for t in [1, 2] {
