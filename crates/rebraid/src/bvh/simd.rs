@@ -236,7 +236,7 @@ impl FmaSlab {
 /// `static`, not `const`: a `const` array indexed at run time is a value
 /// LLVM may build anew at each use, and in one build of session 45 it
 /// copied this table onto the stack for every ray (a 384-byte `memcpy`
-/// call before each ray's walk: diffuse rays 3-20% slower).
+/// call before each ray's walk: diffuse rays 2-18% slower).
 static OCTANT_PLANES: [([usize; 3], [usize; 3]); 8] = octant_planes(1);
 
 /// [`OCTANT_PLANES`] as byte offsets of the planes in an 8-wide node
