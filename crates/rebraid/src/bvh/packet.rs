@@ -12,15 +12,18 @@
 //! API also uses).
 //!
 //! Every lane's box test computes the single-ray AVX2 test's distances
-//! (the same [`FmaSlab`] constants, one FMA per plane, the same
-//! [`ROBUST_FAR`] pad) and orders them as floats, where the single-ray
-//! test orders them as integers (its latency chain is shorter so, see
-//! `Avx2Tester::test_known` in `simd.rs`; the packet's tests are many and
-//! independent, and as integers shadow packets took 2-6% longer, session
-//! 45). The two enter the same boxes at the same distances, so a ray
-//! enters exactly the boxes it enters alone, but for one case that holds
-//! no hit: a box wholly behind the ray's origin whose far distance
-//! underflows to `-0.0`, which the single-ray test skips. A leaf that most of a packet reaches tests one
+//! (the same [`FmaSlab`] constants, one FMA per plane) and orders them as
+//! floats with the [`ROBUST_FAR`] product, where the single-ray test orders
+//! them as integers and pads the far distance by a few ulps on its bits
+//! (`Avx2Tester::test_known` and `pad_far_bits` in `simd.rs`: one cycle
+//! per step where the float operations take four on Intel cores; the
+//! packet's tests are many and independent, and so done they made shadow
+//! packets 2-8% slower, session 45). A ray enters the same boxes at the
+//! same distances in a packet as alone, but for two cases that hold no
+//! hit: a box whose entry lies within the few ulps by which the single-ray
+//! pad is wider (entered alone only), and a box wholly behind the ray's
+//! origin whose far distance underflows to `-0.0` (entered in a packet
+//! only). A leaf that most of a packet reaches tests one
 //! triangle for all its rays at once ([`TrianglePacket`], the four-triangle
 //! test's operations per lane), other leaves one ray at a time: either way
 //! a triangle is hit exactly when the single-ray test hits it, so an
@@ -1176,7 +1179,7 @@ mod tests {
                 rng.gen_range(-s..s),
             )
         };
-        let (mut hits, mut misses) = (0u32, 0u32);
+        let (mut hits, mut misses, mut band) = (0u32, 0u32, 0u32);
         for _ in 0..10_000 {
             let mut node = WideNode::<8>::EMPTY;
             let children = rng.gen_range(2..=8);
@@ -1250,17 +1253,27 @@ mod tests {
                 let want = alone.test(&node, r.t_max, &mut dist);
                 for c in 0..8 {
                     let got = packet.test_child(&node, c) >> l & 1;
-                    assert_eq!(got, want >> c & 1, "lane {l} child {c}: {r:?}");
+                    if got != want >> c & 1 {
+                        // The single-ray test's pad is a few ulps wider
+                        // (`pad_far_bits`): only it may enter an extra box
+                        // (but for a box behind the origin whose far
+                        // distance underflowed to `-0.0`, which only the
+                        // float test enters and these rays do not meet).
+                        assert_eq!(got, 0, "lane {l} child {c}: {r:?}");
+                        band += 1;
+                    }
                     hits += got;
                     misses += 1 - got;
                 }
             }
         }
-        // Both answers must be common, or the test proves little.
+        // Both answers must be common, or the test proves little; boxes
+        // only the wider pad enters, rare.
         assert!(
             hits > 3_000 && misses > 10_000,
             "{hits} hits, {misses} misses"
         );
+        assert!(band * 10_000 < hits, "{band} boxes entered alone only");
     }
 
     /// Blocks of the given triangles, four to a block, the last padded
