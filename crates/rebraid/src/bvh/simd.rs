@@ -639,9 +639,13 @@ pub(crate) mod x86 {
                 let mut hit = if EXACT {
                     _mm256_cmp_ps::<_CMP_LE_OQ>(near, far)
                 } else {
-                    let beyond =
-                        _mm256_cmpgt_epi32(_mm256_castps_si256(near), _mm256_castps_si256(far));
-                    _mm256_castsi256_ps(_mm256_xor_si256(beyond, _mm256_set1_epi32(-1)))
+                    // `far > near - 1`, which is `near <= far` for the
+                    // non-negative `near` (no wrap): the hit mask itself,
+                    // with no inversion after the compare on the chain
+                    // (diffuse rays 0.6-1.9% faster than `!(near > far)`,
+                    // session 45).
+                    let below = _mm256_sub_epi32(_mm256_castps_si256(near), _mm256_set1_epi32(1));
+                    _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_castps_si256(far), below))
                 };
                 if EXACT {
                     hit = _mm256_and_ps(
