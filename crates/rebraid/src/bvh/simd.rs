@@ -417,8 +417,10 @@ pub(crate) mod x86 {
         far: [usize; 3],
         t_min: __m256,
         /// Some `inv_dir` or offset is not finite (a zero direction
-        /// component): this ray takes the exact sub-and-multiply test with
-        /// the NaN fix, as `hit_node` and the SSE kernel do.
+        /// component), or `t_min` has its sign bit set (the fast path's
+        /// integer ordering needs `t_min >= +0.0`): this ray takes the
+        /// exact sub-and-multiply test with the NaN fix, as `hit_node` and
+        /// the SSE kernel do.
         exact: bool,
     }
 
