@@ -13,20 +13,20 @@
 # `occluded_batch_with` (`rtcIntersect1` per ray with its ray and hit conversions). Both read the
 # ray array and write the answer array. (Before session 15 Embree's side counted `rtcIntersect1`
 # alone, without its ray and hit conversions, and ours all of `trace_sets`, with the answers'
-# summary after the clock stops.) The cache model is this machine's as the chained-load
-# measurement sees it (`examples/memlat.rs`): 32 KiB L1D and a 1 MiB last level (the private L2;
-# the shared L3 does not help); CG_D1 and CG_LL override it, e.g. `CG_D1=49152,12,64
-# CG_LL=2097152,16,64` for a 48 KiB L1D and a 2 MiB L2. Valgrind cannot run AVX-512, so Embree is capped at AVX2 (as our
+# summary after the clock stops.) The cache model is `tools/cg-sim.sh`'s (CG_D1 and CG_LL
+# override it). Valgrind cannot run AVX-512, so Embree is capped at AVX2 (as our
 # kernels are). Needs `valgrind` and a build with `--features embree`. Default image: 240x135.
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
+# shellcheck source=tools/cg-sim.sh
+. "$here/cg-sim.sh"
 bin=${REBRAID_BIN:-$here/../target/release/rebraid}
 scene=$1 set=$2
 shift 2
 d=$(mktemp -d)
 trap 'rm -rf "$d"' EXIT
 valgrind --tool=callgrind --trace-children=yes --branch-sim=yes --cache-sim=yes \
-    --I1=32768,8,64 --D1=${CG_D1:-32768,8,64} --LL=${CG_LL:-1048576,8,64} --collect-atstart=no \
+    "${cg_cache[@]}" --collect-atstart=no \
     --toggle-collect='rebraid::scene::Scene::intersect_batch' \
     --toggle-collect='rebraid::scene::Scene::occluded_batch' \
     --toggle-collect='rebraid_cli::embree::EmbreeScene::intersect_batch_with' \
@@ -41,7 +41,7 @@ for f in "$d"/cg.*; do
     if [ -n "$mode" ]; then mv "$f" "$d/$mode.cg"; else rm "$f"; fi
 done
 valgrind --tool=callgrind --branch-sim=yes --cache-sim=yes \
-    --I1=32768,8,64 --D1=${CG_D1:-32768,8,64} --LL=${CG_LL:-1048576,8,64} --collect-atstart=no \
+    "${cg_cache[@]}" --collect-atstart=no \
     --toggle-collect='rebraid::scene::Scene::intersect_batch' \
     --toggle-collect='rebraid::scene::Scene::occluded_batch' --callgrind-out-file="$d/rebraided.cg" \
     "$bin" bench "$scene" --modes rebraided --sets "$set" --threads 1 --reps 1 --width 240 \

@@ -16,23 +16,19 @@
 # 240x135, one thread. Needs `valgrind` and `objdump`.
 set -euo pipefail
 # EVENT=DLmr (or D1mr, Dr...) lists that event per ray instead of instructions, with callgrind's
-# cache model set to this machine's as in `tools/callgrind-compare.sh` (CG_D1 and CG_LL override
-# it: `CG_D1=49152,12,64 CG_LL=2097152,16,64` for the 48 KiB L1D and 2 MiB L2 of the Xeon of
-# session 45). EVENT=Bcm (or Bc, Bim...) lists branches and their mispredictions instead.
-event=${EVENT:-Ir}
-cache=()
-if [ "${event:0:1}" = B ]; then
-    cache=(--branch-sim=yes)
-elif [ "$event" != Ir ]; then
-    cache=(--cache-sim=yes --I1=32768,8,64 --D1=${CG_D1:-32768,8,64} --LL=${CG_LL:-1048576,8,64})
-fi
+# cache model of `tools/cg-sim.sh` (CG_D1 and CG_LL override it). EVENT=Bcm (or Bc, Bim...)
+# lists branches and their mispredictions instead.
 here=$(cd "$(dirname "$0")" && pwd)
+# shellcheck source=tools/cg-sim.sh
+. "$here/cg-sim.sh"
+event=${EVENT:-Ir}
+cg_event_options "$event"
 bin=${REBRAID_BIN:-$here/../target/release/rebraid}
 scene=$1 set=$2 mode=$3 func=$4
 shift 4
 d=$(mktemp -d)
 trap 'rm -rf "$d"' EXIT
-valgrind --tool=callgrind "${cache[@]}" --dump-instr=yes --compress-pos=no --compress-strings=no \
+valgrind --tool=callgrind "${cg_options[@]}" --dump-instr=yes --compress-pos=no --compress-strings=no \
     --collect-atstart=no --toggle-collect='rebraid::scene::Scene::intersect_batch' \
     --toggle-collect='rebraid::scene::Scene::occluded_batch' \
     --callgrind-out-file="$d/cg" "$bin" bench "$scene" --modes "$mode" --sets "$set" \
