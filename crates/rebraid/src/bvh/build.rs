@@ -780,6 +780,9 @@ pub(crate) fn compact_slots(
 
 #[cfg(test)]
 mod tests {
+    use rand::{Rng, SeedableRng};
+    use rand_pcg::Pcg64;
+
     use super::*;
 
     /// A closed room (floor and ceiling slabs, two triangles per face) around
@@ -797,14 +800,8 @@ mod tests {
             tris.push([a, b, c]);
             tris.push([a, c, d]);
         }
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = move || {
-            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
-            let mut z = state;
-            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-            ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut rng = Pcg64::seed_from_u64(43);
+        let mut next = move || rng.gen_range(0.0f32..1.0);
         for _ in 0..4000 {
             let c = Vec3::new(100.0 * next(), 0.2 + 4.3 * next(), 50.0 * next());
             let mut corner = || c + Vec3::new(next(), next(), next()) * 0.5;
