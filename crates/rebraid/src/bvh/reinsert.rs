@@ -142,6 +142,32 @@ mod search_box {
                 _mm_cvtss_f32(_mm_add_ss(_mm_add_ss(p, p1), p2))
             }
         }
+
+        /// The half areas of `self` joined with `a`, with `b`, and of `a`
+        /// and `b` alone, in one pass over four boxes: bit for bit what
+        /// [`SearchBox::half_area`] gives for each (the same products,
+        /// summed in the same order, lane by lane after a transpose).
+        #[inline(always)]
+        pub fn pair_areas(self, a: Self, b: Self) -> [f32; 4] {
+            // SAFETY: SSE2 is part of x86-64.
+            unsafe {
+                let mut e0 = _mm_sub_ps(_mm_max_ps(self.1, a.1), _mm_min_ps(self.0, a.0));
+                let mut e1 = _mm_sub_ps(_mm_max_ps(self.1, b.1), _mm_min_ps(self.0, b.0));
+                let mut e2 = _mm_sub_ps(a.1, a.0);
+                let mut e3 = _mm_sub_ps(b.1, b.0);
+                // Rows become columns: x, y, z (and the zeroed fourth
+                // lane) of the four boxes.
+                _MM_TRANSPOSE4_PS(&mut e0, &mut e1, &mut e2, &mut e3);
+                let (x, y, z) = (e0, e1, e2);
+                let s = _mm_add_ps(
+                    _mm_add_ps(_mm_mul_ps(x, y), _mm_mul_ps(y, z)),
+                    _mm_mul_ps(z, x),
+                );
+                let mut out = [0.0f32; 4];
+                _mm_storeu_ps(out.as_mut_ptr(), s);
+                out
+            }
+        }
     }
 }
 
@@ -167,6 +193,16 @@ mod search_box {
         #[inline(always)]
         pub fn half_area(self) -> f32 {
             self.0.half_area()
+        }
+
+        #[inline(always)]
+        pub fn pair_areas(self, a: Self, b: Self) -> [f32; 4] {
+            [
+                self.union(a).half_area(),
+                self.union(b).half_area(),
+                a.half_area(),
+                b.half_area(),
+            ]
         }
     }
 }
@@ -270,17 +306,18 @@ impl<'a> Tree<'a> {
         // Bounds of what stays under `pivot` once `from` is gone.
         let mut kept = SearchBox::of(&nodes[side as usize]);
         loop {
+            // `side` itself, then the children pairs below it: a stack
+            // entry is a pair (its first child's index) with the saving
+            // that holds above both, so that one step prices two siblings
+            // (`SearchBox::pair_areas`: four areas in one set of vector
+            // operations) and the stack is popped half as often.
             stack.clear();
-            stack.push((saved, side));
-            while let Some((gain_here, i)) = stack.pop() {
-                if gain_here - area <= best.gain {
-                    continue;
-                }
-                let dst = &nodes[i as usize];
+            if saved - area > best.gain {
+                let dst = &nodes[side as usize];
                 let dst_box = SearchBox::of(dst);
-                let gain = gain_here - bounds.union(dst_box).half_area();
+                let gain = saved - bounds.union(dst_box).half_area();
                 if gain > best.gain {
-                    best.to = i;
+                    best.to = side;
                     best.gain = gain;
                 }
                 if !dst.is_leaf() {
@@ -289,7 +326,33 @@ impl<'a> Tree<'a> {
                     let below = gain + dst_box.half_area();
                     if below - area > best.gain {
                         stack.push((below, dst.index));
-                        stack.push((below, dst.index + 1));
+                    }
+                }
+            }
+            while let Some((gain_here, first)) = stack.pop() {
+                if gain_here - area <= best.gain {
+                    continue;
+                }
+                let (l, r) = (&nodes[first as usize], &nodes[first as usize + 1]);
+                let (l_box, r_box) = (SearchBox::of(l), SearchBox::of(r));
+                let [l_joined, r_joined, l_area, r_area] = bounds.pair_areas(l_box, r_box);
+                let (l_gain, r_gain) = (gain_here - l_joined, gain_here - r_joined);
+                // The right child first, as the stack of single nodes
+                // popped them (a tie keeps the first found).
+                if r_gain > best.gain {
+                    best.to = first + 1;
+                    best.gain = r_gain;
+                }
+                if l_gain > best.gain {
+                    best.to = first;
+                    best.gain = l_gain;
+                }
+                for (n, gain, own) in [(l, l_gain, l_area), (r, r_gain, r_area)] {
+                    if !n.is_leaf() {
+                        let below = gain + own;
+                        if below - area > best.gain {
+                            stack.push((below, n.index));
+                        }
                     }
                 }
             }
