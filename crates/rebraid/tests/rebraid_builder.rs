@@ -8,7 +8,7 @@ use proptest::prelude::*;
 use rebraid::glam::Vec3;
 use rebraid::scene::Accel;
 use rebraid::toplevel::builder::RefSources;
-use rebraid::toplevel::{BuildRef, build_top_level};
+use rebraid::toplevel::{BuildRef, ObjectBvh, build_top_level};
 use rebraid::{AccelMode, INVALID_ID, RebraidParams, RefBudget, Scene, SceneParams};
 use scene_common::*;
 
@@ -289,6 +289,50 @@ fn trees_do_not_depend_on_the_thread_count() {
             assert!(a.2 == b.2, "mode {m}: object BVHs differ with pool {k}");
             assert_eq!(a.3, b.3, "mode {m}: SAH differs with pool {k}");
         }
+    }
+}
+
+/// A commit builds the top level while it finishes the new objects' wide
+/// layouts (their blocks and occlusion order), opening them by their
+/// collapse alone: the top level must be the one a later commit builds over
+/// the same objects finished, and each object's layout the one
+/// `ObjectBvh::with_collapse` makes.
+#[test]
+fn top_levels_over_new_and_kept_objects_agree() {
+    let model = overlapping_model(41);
+    let mut scene = model.to_scene(rebraided(RebraidParams::default()));
+    let tops = |scene: &Scene| match scene.accel() {
+        Accel::TopLevel(t) => (t.tree.clone(), t.refs.clone()),
+        _ => panic!("one top level expected"),
+    };
+    let report = scene.commit().unwrap();
+    assert!(!report.objects_rebuilt.is_empty());
+    let fresh = tops(&scene);
+    // Back and forth through the two-level mode: the objects are kept.
+    scene.set_mode(AccelMode::TwoLevel);
+    scene.commit().unwrap();
+    scene.set_mode(AccelMode::Rebraided);
+    let report = scene.commit().unwrap();
+    assert!(report.objects_rebuilt.is_empty(), "objects kept");
+    let kept = tops(&scene);
+    assert!(
+        fresh.1.len() > model.placements().len(),
+        "the top level opens refs"
+    );
+    assert!(fresh == kept, "top levels over new and kept objects differ");
+    let Accel::TopLevel(t) = scene.accel() else {
+        unreachable!()
+    };
+    for o in t.objects.iter().flatten() {
+        let again = ObjectBvh::with_collapse(o.mesh.clone(), o.collapse);
+        let (Some(a), Some(b)) = (&o.wide, &again.wide) else {
+            panic!("every object has its layout");
+        };
+        assert!(a.wide == b.wide, "finished nodes differ");
+        // Blocks pad their empty lanes with NaN: compared as printed.
+        assert_eq!(format!("{:?}", a.blocks), format!("{:?}", b.blocks));
+        assert!(a.occlusion == b.occlusion && a.block_misses == b.block_misses);
+        assert!(o.wide_of == again.wide_of, "finished map differs");
     }
 }
 

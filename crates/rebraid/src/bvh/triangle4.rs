@@ -632,16 +632,28 @@ impl WideTriangleBvh {
         mesh: &crate::MeshBvh,
         collapse: super::Collapse,
     ) -> Result<Self, crate::Error> {
-        let mut wide = WideBvh::from_bvh_with(&mesh.bvh, collapse)?;
+        Ok(Self::from_plan(
+            mesh,
+            WideBvh::from_bvh_with(&mesh.bvh, collapse)?,
+        ))
+    }
+
+    /// The second half of [`WideTriangleBvh::from_mesh_with`]: the leaves
+    /// of `wide` (collapsed from `mesh.bvh`, its leaves still naming binary
+    /// ranges) packed into blocks, and every node's slots put in occlusion
+    /// order. Separate so that a scene's commit can make it while the top
+    /// level is built, which needs only the collapse (which binary nodes
+    /// the wide nodes hold) of each object.
+    pub fn from_plan(mesh: &crate::MeshBvh, mut wide: WideBvh<8>) -> Self {
         let (blocks, block_misses) =
             pack_triangle4_with_misses(&mut wide, &mesh.triangles, &mesh.bvh.prim_indices);
         let occlusion = order_for_occlusion(&mut wide, |r, _| leaf_occlusion(&block_misses, r));
-        Ok(Self {
+        Self {
             wide,
             blocks,
             occlusion,
             block_misses,
-        })
+        }
     }
 
     /// Bytes of the nodes, maps and blocks.

@@ -43,7 +43,7 @@ use flat::FlatPart;
 pub use flat::{FlatAccel, PrimOrigin};
 pub use split::SplitAccel;
 
-use crate::bvh::{BuildParams, BvhStats, Kernel, SahCosts, TraversalCounters};
+use crate::bvh::{BuildParams, BvhStats, Kernel, SahCosts, TraversalCounters, WideBvh};
 use crate::toplevel::builder::{RefSources, TopLevelScratch, build_top_level_with};
 use crate::toplevel::{
     BuildRef, InstanceXf, MergedSlot, ObjectBvh, RebraidParams, TopLevelAccel, TopLevelBuildStats,
@@ -278,6 +278,14 @@ struct FixedKey {
     structure: u64,
     params: SceneParams,
     moving: Moving,
+}
+
+/// Where a pending object BVH (see `ObjectBvh::planned`) sits: an
+/// object's own, or the world-space one of its baked placement.
+#[derive(Clone, Copy)]
+enum PendingAt {
+    Object(usize),
+    Baked(usize),
 }
 
 /// The placements a top level is built over.
@@ -861,9 +869,13 @@ impl Scene {
                 large_leaf_split: None,
                 ..params.clone()
             };
-            // The whole object structure (binary build, wide collapse,
-            // Triangle4 packing) per task: the collapse and packing were a
-            // serial 17% of `library --scale 1`'s object builds before.
+            // The object structure up to its wide collapse (binary build,
+            // counts and costs, collapse) per task: the collapse and
+            // packing were a serial 17% of `library --scale 1`'s object
+            // builds when they ran after all the binary builds. The packing
+            // and occlusion order (`ObjectBvh::planned`) follow in
+            // `build_top`, beside the top level's build: at two threads
+            // builds 2-10% faster on five shared scenes (session 47).
             // One object per task (`with_max_len(1)`): rayon's adaptive
             // split otherwise left a thread running a run of the largest
             // objects in sequence while the other, done with its share of
@@ -913,13 +925,13 @@ impl Scene {
                                 // scale): the instance stays one.
                                 let bvh =
                                     MeshBvh::build_transformed(&o.mesh, xf, object_params).ok()?;
-                                Some((inst, ObjectBvh::with_collapse(bvh, params.collapse)))
+                                Some((inst, ObjectBvh::planned(bvh, params.collapse)))
                             });
                             let b: Built = match baked {
                                 Some((inst, bvh)) => (i, bake, Some(inst), Ok(bvh)),
                                 None => {
                                     let r = MeshBvh::build(&o.mesh, object_params)
-                                        .map(|b| ObjectBvh::with_collapse(b, params.collapse));
+                                        .map(|b| ObjectBvh::planned(b, params.collapse));
                                     (i, bake, None, r)
                                 }
                             };
@@ -1003,18 +1015,28 @@ impl Scene {
 
             let t = Instant::now();
             let mut next_bufs = || bufs.pop().unwrap_or_default();
+            // What the objects' pending layouts added to the top levels'
+            // time (see `build_top`): counted with the objects.
+            let mut finish_ms = 0.0;
+            let mut top = |part| {
+                self.build_top(mode, next_bufs(), part).map(|(accel, ms)| {
+                    finish_ms += ms;
+                    accel
+                })
+            };
             let (fixed, moving_top) = match &moving {
-                None => (self.build_top(mode, next_bufs(), Part::All)?, None),
+                None => (top(Part::All)?, None),
                 Some(m) => {
                     let fixed = match kept_fixed {
                         Some(f) => f,
-                        None => self.build_top(mode, next_bufs(), Part::Fixed(m))?,
+                        None => top(Part::Fixed(m))?,
                     };
-                    let moving = self.build_top(mode, next_bufs(), Part::Moving(m))?;
+                    let moving = top(Part::Moving(m))?;
                     (fixed, Some(moving))
                 }
             };
-            report.top_build_ms = t.elapsed().as_secs_f64() * 1e3;
+            report.top_build_ms = t.elapsed().as_secs_f64() * 1e3 - finish_ms;
+            report.object_build_ms += finish_ms;
             // One part empty: the other alone, not kept.
             let (top, split) = match moving_top {
                 Some(m) if fixed.tree.is_empty() => (m, None),
@@ -1224,7 +1246,28 @@ impl Scene {
         mode: AccelMode,
         (mut objects, mut instances): (Vec<Option<Arc<ObjectBvh>>>, Vec<InstanceXf>),
         part: Part,
-    ) -> Result<TopLevelAccel, Error> {
+    ) -> Result<(TopLevelAccel, f64), Error> {
+        // Every object BVH whose wide layout is pending (built in this
+        // commit, see `ObjectBvh::planned`; or in an earlier one that
+        // failed before its top level), whichever part it belongs to: its
+        // collapse taken out to be finished beside the top-level build.
+        // (`make_mut` copies only a BVH someone else still holds.)
+        let mut pending: Vec<(PendingAt, Arc<ObjectBvh>, WideBvh<8>)> = Vec::new();
+        for (id, o) in self.objects.iter_mut().enumerate() {
+            let Some(o) = o else { continue };
+            let at = [
+                (PendingAt::Object(id), o.bvh.as_mut()),
+                (PendingAt::Baked(id), o.baked.as_mut().map(|b| &mut b.bvh)),
+            ];
+            for (at, bvh) in at {
+                if let Some(bvh) = bvh
+                    && bvh.pending.is_some()
+                    && let Some(plan) = Arc::make_mut(bvh).pending.take()
+                {
+                    pending.push((at, bvh.clone(), plan));
+                }
+            }
+        }
         // The fixed part holds no object that moved, so that it can be
         // kept while their BVHs are refitted in place.
         objects.extend(self.objects.iter().enumerate().map(|(id, o)| {
@@ -1338,7 +1381,51 @@ impl Scene {
         } else {
             &mut self.top_scratch
         };
-        let built = build_top_level_with(&refs, src, &params, buffers);
+        // The top level and the pending layouts side by side: the top
+        // level's build is mostly serial (its binned build splits in
+        // parallel only above `parallel_threshold` refs, its reinsertion
+        // applies moves in order), and the packing and occlusion order of
+        // the objects fill the threads it leaves idle.
+        let join_start = Instant::now();
+        let ((built, top_ms), finished) = rayon::join(
+            || {
+                let t = Instant::now();
+                let built = build_top_level_with(&refs, src, &params, buffers);
+                (built, t.elapsed().as_secs_f64() * 1e3)
+            },
+            || {
+                pending
+                    .into_par_iter()
+                    .with_max_len(1)
+                    .map(|(at, bvh, plan)| (at, ObjectBvh::finish_plan(&bvh.mesh, plan)))
+                    .collect::<Vec<_>>()
+            },
+        );
+        // What the layouts added to the top level's own time (the whole
+        // of them at one thread): the objects' share of the commit.
+        let finish_ms = (join_start.elapsed().as_secs_f64() * 1e3 - top_ms).max(0.0);
+        // Put the layouts in: the slots of this part's `objects` let go of
+        // their BVHs first, so that each is held once and changed in place.
+        for (at, layout) in finished {
+            let (id, slot) = match at {
+                PendingAt::Object(id) => (id, Some(id)),
+                PendingAt::Baked(id) => {
+                    let k = baked.iter().position(|&(o, _)| o as usize == id);
+                    (id, k.map(|k| baked_base + k))
+                }
+            };
+            let held = slot.and_then(|k| objects[k].take()).is_some();
+            let o = self.objects[id].as_mut().expect("pending BVHs are live");
+            let bvh = match at {
+                PendingAt::Object(_) => o.bvh.as_mut(),
+                PendingAt::Baked(_) => o.baked.as_mut().map(|b| &mut b.bvh),
+            }
+            .expect("pending BVHs are in place");
+            Arc::make_mut(bvh).install(layout);
+            if let (Some(k), true) = (slot, held) {
+                objects[k] = Some(bvh.clone());
+            }
+        }
         let layout_buffers = buffers.take_layout();
         if !self.no_buffer_reuse {
             self.top_initial = refs;
@@ -1383,7 +1470,7 @@ impl Scene {
         if let Err(e) = accel.validate() {
             panic!("top-level builder produced an invalid tree: {e}");
         }
-        Ok(accel)
+        Ok((accel, finish_ms))
     }
 
     /// Closest hit along the ray (no hit before the first commit).

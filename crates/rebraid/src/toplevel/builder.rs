@@ -853,22 +853,27 @@ fn is_object_leaf(ctx: &Ctx, r: &BuildRef) -> bool {
 }
 
 /// Child nodes (binary node ids) of an opened ref: the slots of the wide
-/// node collapsed from its node when the object has the wide layout (up to
-/// 8: the top level then reaches exactly the nodes traversal starts from),
-/// else the binary node's two children. Returns the ids and their count.
+/// node collapsed from its node when the object has the wide layout or its
+/// collapse pending (up to 8: the top level then reaches exactly the nodes
+/// traversal starts from), else the binary node's two children. Returns
+/// the ids and their count.
 #[inline]
 fn child_nodes(ctx: &Ctx, r: &BuildRef) -> ([u32; 8], usize) {
     let obj = ctx.src.objects[r.object as usize]
         .as_deref()
         .expect("validated");
     let mut ids = [0u32; 8];
-    if let (Some(wide), Some(w)) = (&obj.wide, obj.wide_node(r.node)) {
-        let slots = &wide.wide.slot_binary[w as usize];
+    if let Some(slots) = obj.wide_node(r.node).and_then(|w| obj.wide_slots(w)) {
         let mut k = 0;
         for &b in slots.iter().take_while(|&&b| b != WIDE_EMPTY) {
             ids[k] = b;
             k += 1;
         }
+        // In binary node order, not the slots' (which the occlusion order
+        // sets, and which a pending layout does not have yet): the same
+        // refs in the same order whether the object was built in this
+        // commit or an earlier one.
+        ids[..k].sort_unstable();
         return (ids, k);
     }
     let c = obj.nodes()[r.node as usize].index;

@@ -53,6 +53,29 @@ pub struct ObjectBvh {
     pub wide_of: Vec<u32>,
     /// The rule `wide` was collapsed by (again after a refit).
     pub collapse: Collapse,
+    /// A collapse whose leaves are not packed yet ([`ObjectBvh::planned`]):
+    /// `wide` is `None` until [`ObjectBvh::install`] puts the finished
+    /// layout in.
+    pub(crate) pending: Option<WideBvh<8>>,
+    /// While the layout is pending or being finished, each wide node's
+    /// slots as binary nodes (the collapse's `slot_binary`): what the
+    /// top-level builder opens a node into ([`ObjectBvh::wide_slots`]).
+    pub(crate) plan_slots: Vec<[u32; 8]>,
+}
+
+/// For each of `binary_nodes` binary nodes, the wide node collapsed from
+/// it (inner nodes), the wide leaf reference naming its blocks (leaves), or
+/// `WIDE_EMPTY` (see [`ObjectBvh::wide_of`]).
+fn binary_map(w: &WideTriangleBvh, binary_nodes: usize) -> Vec<u32> {
+    let mut map = w.wide.wide_of_binary(binary_nodes);
+    for (node, slots) in w.wide.nodes.iter().zip(&w.wide.slot_binary) {
+        for (&r, &b) in node.child.iter().zip(slots) {
+            if r != WIDE_EMPTY && is_leaf_ref(r) {
+                map[b as usize] = r;
+            }
+        }
+    }
+    map
 }
 
 impl ObjectBvh {
@@ -64,6 +87,13 @@ impl ObjectBvh {
     /// The object over `mesh`, its wide layout collapsed by `collapse`
     /// ([`crate::bvh::BuildParams::collapse`]).
     pub fn with_collapse(mesh: MeshBvh, collapse: Collapse) -> Self {
+        let mut o = Self::bare(mesh, collapse);
+        o.collapse_wide();
+        o
+    }
+
+    /// The binary tree with its counts and costs, no wide layout.
+    fn bare(mesh: MeshBvh, collapse: Collapse) -> Self {
         let n = mesh.bvh.nodes.len();
         let mut o = Self {
             mesh,
@@ -72,28 +102,69 @@ impl ObjectBvh {
             wide: None,
             wide_of: Vec::new(),
             collapse,
+            pending: None,
+            plan_slots: Vec::new(),
         };
         o.update_counts_and_costs();
-        o.collapse_wide();
         o
+    }
+
+    /// [`ObjectBvh::with_collapse`] up to the collapse: the binary tree,
+    /// its counts and costs, and which binary nodes the wide nodes hold
+    /// (`pending`, with `wide_of` for the inner nodes), which is all the
+    /// re-braiding top-level builder reads of an object. The leaves'
+    /// blocks and the occlusion order (two thirds of the wide layout's
+    /// time) are made by [`ObjectBvh::finish_plan`] and put in by
+    /// [`ObjectBvh::install`]: a scene's commit makes them while it builds
+    /// the top level, on the threads the top level's serial phases leave
+    /// idle. Not to be traced before then.
+    pub(crate) fn planned(mesh: MeshBvh, collapse: Collapse) -> Self {
+        let mut o = Self::bare(mesh, collapse);
+        if let Ok(plan) = WideBvh::from_bvh_with(&o.mesh.bvh, collapse) {
+            o.wide_of = plan.wide_of_binary(o.mesh.bvh.nodes.len());
+            o.plan_slots.clone_from(&plan.slot_binary);
+            o.pending = Some(plan);
+        }
+        o
+    }
+
+    /// The wide layout of `mesh` from its collapse `plan` (taken out of a
+    /// [`ObjectBvh::planned`] object), and its map from binary nodes, as
+    /// [`ObjectBvh::install`] takes them.
+    pub(crate) fn finish_plan(mesh: &MeshBvh, plan: WideBvh<8>) -> (WideTriangleBvh, Vec<u32>) {
+        let wide = WideTriangleBvh::from_plan(mesh, plan);
+        let map = binary_map(&wide, mesh.bvh.nodes.len());
+        (wide, map)
+    }
+
+    /// Put in the layout [`ObjectBvh::finish_plan`] made of this object's
+    /// pending collapse.
+    pub(crate) fn install(&mut self, (wide, wide_of): (WideTriangleBvh, Vec<u32>)) {
+        self.wide = Some(wide);
+        self.wide_of = wide_of;
+        self.pending = None;
+        self.plan_slots = Vec::new();
+    }
+
+    /// The binary nodes held by the slots of wide node `w` (`WIDE_EMPTY`
+    /// for empty slots), from the layout or, while it is pending, from the
+    /// collapse.
+    #[inline]
+    pub(crate) fn wide_slots(&self, w: u32) -> Option<&[u32; 8]> {
+        match &self.wide {
+            Some(wide) => wide.wide.slot_binary.get(w as usize),
+            None => self.plan_slots.get(w as usize),
+        }
     }
 
     /// (Re)collapse the 8-wide traversal layout from the binary tree; none
     /// when a binary leaf is too large for it (traversal stays binary then).
     fn collapse_wide(&mut self) {
+        self.pending = None;
+        self.plan_slots = Vec::new();
         self.wide = WideTriangleBvh::from_mesh_with(&self.mesh, self.collapse).ok();
         self.wide_of = match &self.wide {
-            Some(w) => {
-                let mut map = w.wide.wide_of_binary(self.mesh.bvh.nodes.len());
-                for (node, slots) in w.wide.nodes.iter().zip(&w.wide.slot_binary) {
-                    for (&r, &b) in node.child.iter().zip(slots) {
-                        if r != WIDE_EMPTY && is_leaf_ref(r) {
-                            map[b as usize] = r;
-                        }
-                    }
-                }
-                map
-            }
+            Some(w) => binary_map(w, self.mesh.bvh.nodes.len()),
             None => Vec::new(),
         };
     }
