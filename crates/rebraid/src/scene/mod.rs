@@ -358,7 +358,10 @@ pub struct CommitReport {
     /// [`RebraidParams::bake_single_instances`]). Their objects' BVH
     /// builds count in `objects_rebuilt` like object-space ones.
     pub instances_baked: Vec<InstanceId>,
-    /// Building the BVHs of `objects_rebuilt`.
+    /// Building the BVHs of `objects_rebuilt`. Their leaf blocks and
+    /// occlusion order are made beside the top-level build (see
+    /// `ObjectBvh::planned`): what that adds to the top level's own time
+    /// (all of it on one thread) counts here, not in `top_build_ms`.
     pub object_build_ms: f64,
     /// Refitting the BVHs of `objects_refitted`.
     pub refit_ms: f64,
