@@ -1264,8 +1264,8 @@ impl Scene {
             ];
             for (at, bvh) in at {
                 if let Some(bvh) = bvh
-                    && bvh.pending.is_some()
-                    && let Some(plan) = Arc::make_mut(bvh).pending.take()
+                    && bvh.is_pending()
+                    && let Some(plan) = Arc::make_mut(bvh).take_plan()
                 {
                     pending.push((at, bvh.clone(), plan));
                 }

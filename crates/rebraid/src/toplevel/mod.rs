@@ -56,11 +56,11 @@ pub struct ObjectBvh {
     /// A collapse whose leaves are not packed yet ([`ObjectBvh::planned`]):
     /// `wide` is `None` until [`ObjectBvh::install`] puts the finished
     /// layout in.
-    pub(crate) pending: Option<WideBvh<8>>,
+    pending: Option<WideBvh<8>>,
     /// While the layout is pending or being finished, each wide node's
     /// slots as binary nodes (the collapse's `slot_binary`): what the
     /// top-level builder opens a node into ([`ObjectBvh::wide_slots`]).
-    pub(crate) plan_slots: Vec<[u32; 8]>,
+    plan_slots: Vec<[u32; 8]>,
 }
 
 /// For each of `binary_nodes` binary nodes, the wide node collapsed from
@@ -126,6 +126,18 @@ impl ObjectBvh {
             o.pending = Some(plan);
         }
         o
+    }
+
+    /// Whether the wide layout waits for [`ObjectBvh::install`].
+    pub(crate) fn is_pending(&self) -> bool {
+        self.pending.is_some()
+    }
+
+    /// The pending collapse, taken out to be finished by
+    /// [`ObjectBvh::finish_plan`]; its slots stay for the top-level builder
+    /// until [`ObjectBvh::install`].
+    pub(crate) fn take_plan(&mut self) -> Option<WideBvh<8>> {
+        self.pending.take()
     }
 
     /// The wide layout of `mesh` from its collapse `plan` (taken out of a
