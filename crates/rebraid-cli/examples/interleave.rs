@@ -15,32 +15,32 @@
 //!   per-object leaves are larger than mixed ones would be: what re-braiding
 //!   cannot undo, since it opens object BVHs but never mixes their leaves.
 //!
-//! Session 46 (docs/performance.md): neither figure tells nexuiz, where
-//! merging makes diffuse rays 20% faster, from the library, where it makes
-//! them 17% slower (R 1.9 against 2.8 at g = 4).
+//! - `seams`: the share of triangles with a vertex (its exact position) that
+//!   a triangle of another placement also has: objects cut from one surface
+//!   (by material, say) meet along such seams, and per-object leaves end at
+//!   every seam.
+//!
+//! Session 46 (docs/performance.md): neither `objects` nor `R` tells nexuiz,
+//! where merging makes diffuse rays 20% faster, from the library, where it
+//! makes them 17% slower (R 1.9 against 2.8 at g = 4). Session 48: nor do
+//! seams (nexuiz 21%, the library 5%, but openarena 37%, where merging gains
+//! nothing).
 //!
 //! ```sh
 //! cargo run --release -p rebraid-cli --example interleave -- SCENE... [library@SCALE]
 //! ```
 
+#[path = "support/morton.rs"]
+mod morton;
+
 use anyhow::Context;
 use glam::Vec3;
 use rebraid_cli::loaders::{LoadOptions, Split};
 use rebraid_cli::scene_input::SceneInput;
+use std::collections::HashMap;
 
 /// A triangle in Morton order: its key, its placement and its box.
 type Keyed = (u64, u32, Vec3, Vec3);
-
-/// The low 21 bits of `v` spread to every third bit.
-fn spread(v: u32) -> u64 {
-    let mut x = v as u64 & 0x1f_ffff;
-    x = (x | x << 32) & 0x1f_0000_0000_ffff;
-    x = (x | x << 16) & 0x1f_0000_ff00_00ff;
-    x = (x | x << 8) & 0x100f_00f0_0f00_f00f;
-    x = (x | x << 4) & 0x10c3_0c30_c30c_30c3;
-    x = (x | x << 2) & 0x1249_2492_4924_9249;
-    x
-}
 
 /// Half the surface area of the box around `group`.
 fn half_area(group: &[Keyed]) -> f64 {
@@ -82,6 +82,20 @@ fn main() -> anyhow::Result<()> {
                 (world, base + id as u32)
             }));
         }
+        // Seams: per exact vertex position, the first placement seen with
+        // it and whether another has it too.
+        let mut owner: HashMap<[u32; 3], (u32, bool)> = HashMap::new();
+        let key = |p: Vec3| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
+        for (t, id) in &tris {
+            for &p in t {
+                let e = owner.entry(key(p)).or_insert((*id, false));
+                e.1 |= e.0 != *id;
+            }
+        }
+        let seams = tris
+            .iter()
+            .filter(|(t, _)| t.iter().any(|&p| owner[&key(p)].1))
+            .count();
         let centroid = |t: &[Vec3; 3]| (t[0] + t[1] + t[2]) / 3.0;
         let (lo, hi) = tris.iter().fold(
             (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)),
@@ -91,15 +105,19 @@ fn main() -> anyhow::Result<()> {
         let mut keyed: Vec<Keyed> = tris
             .iter()
             .map(|(t, p)| {
-                let q = ((centroid(t) - lo) / extent * 2_097_151.0).as_uvec3();
-                let key = spread(q.x) | spread(q.y) << 1 | spread(q.z) << 2;
+                let key = morton::code(centroid(t), lo, extent);
                 (key, *p, t[0].min(t[1]).min(t[2]), t[0].max(t[1]).max(t[2]))
             })
             .collect();
         keyed.sort_unstable_by_key(|k| k.0);
         let mut by_placement = keyed.clone();
         by_placement.sort_by_key(|k| (k.1, k.0));
-        print!("{:<26} {:>9} triangles", input.name(), keyed.len());
+        print!(
+            "{:<26} {:>9} triangles, seams {:.1}%",
+            input.name(),
+            keyed.len(),
+            100.0 * seams as f64 / keyed.len().max(1) as f64
+        );
         for g in [4usize, 8, 32] {
             let (mut extra, mut groups) = (0usize, 0usize);
             for group in keyed.chunks(g) {
