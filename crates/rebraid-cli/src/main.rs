@@ -124,6 +124,11 @@ struct SceneOpts {
     /// blocks the SAH prefers (see `LargeLeafSplit`; for comparing).
     #[arg(long)]
     no_large_leaf_split: bool,
+    /// Let nodes whose box holds a quarter of the scene's volume stay leaves
+    /// of more than two triangles, as the SAH prefers (see
+    /// `SceneVolumeLeafLimit`; for comparing).
+    #[arg(long)]
+    no_scene_volume_leaf_limit: bool,
     /// Re-braiding: reinsertion over the top level after its build, as
     /// RATIO,PASSES[,MAX] (the share of its nodes searched per pass, the
     /// passes, at most MAX nodes per pass; default 0.3,3,4096; "off": none).
@@ -239,6 +244,9 @@ impl SceneOpts {
         if self.no_large_leaf_split {
             p.object_build.large_leaf_split = None;
         }
+        if self.no_scene_volume_leaf_limit {
+            p.object_build.scene_volume_leaf_limit = None;
+        }
         if let Some(v) = &self.reinsert {
             r.reinsert = parse_reinsert("--reinsert", v)?;
         }
@@ -290,6 +298,10 @@ impl SceneOpts {
             ),
             ("--merge-placed", self.merge_placed),
             ("--no-large-leaf-split", self.no_large_leaf_split),
+            (
+                "--no-scene-volume-leaf-limit",
+                self.no_scene_volume_leaf_limit,
+            ),
         ];
         v.extend(flags.iter().filter(|f| f.1).map(|f| f.0.to_string()));
         let values = [

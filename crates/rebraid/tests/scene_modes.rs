@@ -776,7 +776,12 @@ fn large_leaf_split_on_and_off_match_brute_force_in_every_mode() {
                 }
             }
         }
-        let wide_sah = |p| committed_stats(model, p, AccelMode::Flat).wide_sah_cost;
+        // With `scene_volume_leaf_limit` off, which splits the room's leaf
+        // too (it holds the room's volume).
+        let wide_sah = |mut p: SceneParams| {
+            p.object_build.scene_volume_leaf_limit = None;
+            committed_stats(model, p, AccelMode::Flat).wide_sah_cost
+        };
         let best = rebraid::bvh::Kernel::best();
         let (on, off) = (
             wide_sah(with(best, false, true)),
@@ -786,6 +791,51 @@ fn large_leaf_split_on_and_off_match_brute_force_in_every_mode() {
         if *what == "room" {
             assert!(on < off, "{what}: the rule did not split the room's leaf");
         }
+    }
+}
+
+/// Every mode with and without `BuildParams::scene_volume_leaf_limit` (on
+/// by default), with every kernel: the brute force's answers on the room,
+/// whose floor and ceiling leaf holds the room's volume; and the limit
+/// reaches the flat tree and the object trees of the two-level modes (the
+/// room's slabs are an object placed directly, whose BVH is measured
+/// against the scene's volume).
+#[test]
+fn scene_volume_leaf_limit_on_and_off_match_brute_force_in_every_mode() {
+    let with = |kernel, mode, limit: bool| {
+        let mut p = SceneParams {
+            kernel: Some(kernel),
+            ..params(mode)
+        };
+        // The large-leaf rule off: it would split the flat tree's leaf too.
+        p.object_build.large_leaf_split = None;
+        if !limit {
+            p.object_build.scene_volume_leaf_limit = None;
+        }
+        p
+    };
+    let room = room_model(973);
+    let rays = random_rays(
+        &mut rng(974),
+        &room.world(),
+        1200,
+        SCENE_LO,
+        SCENE_HI.with_y(4.0),
+    );
+    for kernel in rebraid::bvh::Kernel::available() {
+        for limit in [false, true] {
+            let what = format!("scene-volume leaf limit {limit}, room {kernel:?}");
+            all_modes_vs_brute_with(&room, &rays, &what, with(kernel, AccelMode::Flat, limit));
+        }
+    }
+    let best = rebraid::bvh::Kernel::best();
+    for mode in [AccelMode::Flat, AccelMode::TwoLevel, AccelMode::Rebraided] {
+        let wide_sah = |limit| committed_stats(&room, with(best, mode, limit), mode).wide_sah_cost;
+        let (on, off) = (wide_sah(true), wide_sah(false));
+        assert!(
+            on != off,
+            "{mode:?}: the limit did not reach the room's leaf ({on} both)"
+        );
     }
 }
 

@@ -20,7 +20,8 @@ pub mod wide;
 
 pub use binning::BinBox;
 pub use build::{
-    BuildParams, LargeLeafSplit, MAX_DEPTH, MEDIAN_FROM_DEPTH, build_bvh, build_bvh_aligned,
+    BuildParams, LargeLeafSplit, MAX_DEPTH, MEDIAN_FROM_DEPTH, SceneVolumeLeafLimit, build_bvh,
+    build_bvh_aligned,
 };
 pub(crate) use build::{compact_slots, split_slots};
 pub use collapse::Collapse;

@@ -43,14 +43,16 @@ use flat::FlatPart;
 pub use flat::{FlatAccel, PrimOrigin};
 pub use split::SplitAccel;
 
-use crate::bvh::{BuildParams, BvhStats, Kernel, SahCosts, TraversalCounters, WideBvh};
+use crate::bvh::{
+    BuildParams, BvhStats, Kernel, SahCosts, SceneVolumeLeafLimit, TraversalCounters, WideBvh,
+};
 use crate::toplevel::builder::{RefSources, TopLevelScratch, build_top_level_with};
 use crate::toplevel::{
     BuildRef, InstanceXf, MergedSlot, ObjectBvh, RebraidParams, TopLevelAccel, TopLevelBuildStats,
     TopLevelLayout,
 };
-use crate::transform::check_transform;
-use crate::{Error, Hit, INVALID_ID, MeshBvh, Ray, SceneDesc, TriangleMesh};
+use crate::transform::{check_transform, transform_box};
+use crate::{Aabb, Error, Hit, INVALID_ID, MeshBvh, Ray, SceneDesc, TriangleMesh};
 
 /// Id of an object of a scene (stable until the object is removed).
 pub type ObjectId = u32;
@@ -174,6 +176,9 @@ struct Object {
     /// The world-space BVH of the one instance that places the object, while
     /// it is baked (see [`RebraidParams::bake_single_instances`]).
     baked: Option<Baked>,
+    /// The box of the mesh's vertices, made at the first commit that needs
+    /// it after the mesh changed (see `Scene::scene_volume`).
+    vertex_bounds: Option<Aabb>,
     /// The mesh changed since `bvh` was built.
     dirty: bool,
     /// The triangles (indices) changed since `bvh` was built: rebuild.
@@ -460,6 +465,7 @@ impl Scene {
             placed: true,
             bvh: None,
             baked: None,
+            vertex_bounds: None,
             dirty: true,
             topology_changed: true,
             policy: UpdatePolicy::default(),
@@ -520,6 +526,7 @@ impl Scene {
             o.topology_changed = true;
         }
         o.mesh = mesh;
+        o.vertex_bounds = None;
         o.edited |= !o.dirty;
         o.dirty = true;
         if commits > o.born {
@@ -574,6 +581,7 @@ impl Scene {
         }
         crate::mesh::check_positions(positions)?;
         o.mesh.positions.copy_from_slice(positions);
+        o.vertex_bounds = None;
         o.edited |= !o.dirty;
         o.dirty = true;
         if commits > o.born {
@@ -865,12 +873,29 @@ impl Scene {
                     }
                 }
             }
-            let params = &self.params.object_build;
+            // The scene's volume, for the leaf limit of the BVHs built in
+            // world space: those of objects placed directly, baked ones and
+            // the merged one (`SceneVolumeLeafLimit`).
+            let scene_volume = self.scene_volume();
+            let in_scene = |p: &BuildParams| BuildParams {
+                scene_volume_leaf_limit: p.scene_volume_leaf_limit.map(|r| SceneVolumeLeafLimit {
+                    scene_volume: Some(scene_volume),
+                    ..r
+                }),
+                ..p.clone()
+            };
+            let params = &in_scene(&self.params.object_build);
             // An object's root is not the scene: the large-leaf rule is for
             // the merged BVH (and the flat mode's), not for objects.
-            let object_params = &BuildParams {
+            let world_params = &BuildParams {
                 large_leaf_split: None,
                 ..params.clone()
+            };
+            // An object BVH in object space: the scene's volume does not
+            // measure its boxes.
+            let local_params = &BuildParams {
+                scene_volume_leaf_limit: None,
+                ..world_params.clone()
             };
             // The object structure up to its wide collapse (binary build,
             // counts and costs, collapse) per task: the collapse and
@@ -927,13 +952,15 @@ impl Scene {
                                 // A failure (vertices moved to infinity by a huge
                                 // scale): the instance stays one.
                                 let bvh =
-                                    MeshBvh::build_transformed(&o.mesh, xf, object_params).ok()?;
+                                    MeshBvh::build_transformed(&o.mesh, xf, world_params).ok()?;
                                 Some((inst, ObjectBvh::planned(bvh, params.collapse)))
                             });
                             let b: Built = match baked {
                                 Some((inst, bvh)) => (i, bake, Some(inst), Ok(bvh)),
                                 None => {
-                                    let r = MeshBvh::build(&o.mesh, object_params)
+                                    // Placed directly, object space is world space.
+                                    let p = if o.placed { world_params } else { local_params };
+                                    let r = MeshBvh::build(&o.mesh, p)
                                         .map(|b| ObjectBvh::planned(b, params.collapse));
                                     (i, bake, None, r)
                                 }
@@ -1210,6 +1237,53 @@ impl Scene {
             Vec::new()
         } else {
             members
+        }
+    }
+
+    /// The volume of the scene's box, for [`SceneVolumeLeafLimit`]: the
+    /// box of the vertices of every object placed directly and of every
+    /// instance's transformed object box. Each object's vertex box is kept
+    /// until its mesh changes, so a commit that rebuilds one object reads
+    /// the vertices of that one only.
+    fn scene_volume(&mut self) -> f32 {
+        self.objects
+            .par_iter_mut()
+            .flatten()
+            .filter(|o| o.vertex_bounds.is_none())
+            .for_each(|o| {
+                let b = o.mesh.positions.iter().fold(
+                    (
+                        glam::Vec3A::splat(f32::INFINITY),
+                        glam::Vec3A::splat(f32::NEG_INFINITY),
+                    ),
+                    |(lo, hi), &p| (lo.min(p.into()), hi.max(p.into())),
+                );
+                o.vertex_bounds = Some(Aabb::new(b.0.into(), b.1.into()));
+            });
+        let bounds = |id: ObjectId| {
+            self.objects[id as usize]
+                .as_ref()
+                .and_then(|o| o.vertex_bounds)
+                .unwrap_or(Aabb::EMPTY)
+        };
+        let mut scene = Aabb::EMPTY;
+        for (i, o) in self.objects.iter().enumerate() {
+            if let Some(o) = o
+                && o.placed
+            {
+                scene = scene.union(bounds(i as ObjectId));
+            }
+        }
+        for inst in self.instances.iter().flatten() {
+            scene = scene.union(transform_box(
+                &inst.xf.object_to_world,
+                &bounds(inst.object),
+            ));
+        }
+        if scene.is_empty() {
+            0.0
+        } else {
+            scene.volume()
         }
     }
 
@@ -1636,4 +1710,55 @@ pub struct SceneStats {
     pub top_depth: u32,
     pub top: Option<TopLevelBuildStats>,
     pub flat: Option<BvhStats>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    /// The twelve triangles of the unit cube moved by `at`.
+    fn cube(at: Vec3) -> TriangleMesh {
+        let positions = (0..8)
+            .map(|i| at + Vec3::new((i & 1) as f32, (i >> 1 & 1) as f32, (i >> 2) as f32))
+            .collect();
+        let faces = [
+            [0, 1, 3, 2],
+            [4, 5, 7, 6],
+            [0, 1, 5, 4],
+            [2, 3, 7, 6],
+            [0, 2, 6, 4],
+            [1, 3, 7, 5],
+        ];
+        let indices = faces
+            .iter()
+            .flat_map(|f| [[f[0], f[1], f[2]], [f[0], f[2], f[3]]])
+            .collect();
+        TriangleMesh::new(positions, indices).unwrap()
+    }
+
+    #[test]
+    fn scene_volume_covers_placed_objects_and_instances() {
+        let mut scene = Scene::new();
+        assert_eq!(scene.scene_volume(), 0.0);
+        let placed = scene.add_object(cube(Vec3::ZERO)).unwrap();
+        assert_eq!(scene.scene_volume(), 1.0);
+        // A prototype counts through its instances only.
+        let proto = scene.add_prototype(cube(Vec3::ZERO)).unwrap();
+        assert_eq!(scene.scene_volume(), 1.0);
+        let inst = scene
+            .add_instance(proto, Affine3A::from_translation(Vec3::new(9.0, 0.0, 0.0)))
+            .unwrap();
+        assert!((scene.scene_volume() - 10.0).abs() < 1e-4);
+        // Moved vertices and transforms are seen at the next call.
+        let moved: Vec<Vec3> = cube(Vec3::new(0.0, 3.0, 0.0)).positions;
+        scene.set_vertices(placed, &moved).unwrap();
+        assert!((scene.scene_volume() - 40.0).abs() < 1e-3);
+        scene
+            .set_instance_transform(inst, Affine3A::from_translation(Vec3::new(4.0, 0.0, 0.0)))
+            .unwrap();
+        assert!((scene.scene_volume() - 20.0).abs() < 1e-3);
+        scene.remove_instance(inst).unwrap();
+        assert_eq!(scene.scene_volume(), 1.0);
+    }
 }
