@@ -4,7 +4,8 @@
 //!
 //! What it is for: telling what re-braiding loses to the object split of a
 //! scene (its objects' leaves cannot mix triangles of two objects) from what
-//! it loses to that split's shape. Session 48 (docs/performance.md): nexuiz
+//! it loses to that split's shape. Session 48 (docs/performance.md), before
+//! that session's leaf limit for boxes that hold the scene's volume: nexuiz
 //! re-cut into 16-256 compact chunks traces diffuse rays re-braided at
 //! 0.96-1.05 of its own 114 interleaved material objects, still 0.79-0.86
 //! of the flat BVH over the same triangles: the loss grows with the number

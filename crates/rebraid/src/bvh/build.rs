@@ -187,8 +187,9 @@ pub struct SceneVolumeLeafLimit {
     pub max_primitives: u32,
     /// The volume of the scene's box; `None`: the tree's own root box (a
     /// tree over the whole scene, as the flat mode's). [`crate::Scene`]
-    /// sets it for the BVHs of objects placed in world space. A scene of no
-    /// volume (flat) turns the rule off.
+    /// sets it for the BVHs of objects placed in world space; a BVH kept
+    /// from an earlier commit keeps the volume it was built with. A scene
+    /// of no volume (flat) turns the rule off.
     pub scene_volume: Option<f32>,
 }
 
