@@ -867,6 +867,7 @@ mod tests {
     use rand_pcg::Pcg64;
 
     use super::*;
+    use crate::bvh::test_trees::{box_faces, boxes_and_centroids};
 
     /// A closed room (floor and ceiling slabs, two triangles per face) around
     /// small triangles scattered inside it: the case [`LargeLeafSplit`] is
@@ -890,34 +891,14 @@ mod tests {
             let mut corner = || c + Vec3::new(next(), next(), next()) * 0.5;
             tris.push([corner(), corner(), corner()]);
         }
-        tris.iter()
-            .map(|t| {
-                let b = t.iter().fold(Aabb::EMPTY, |b, &p| b.grow(p));
-                (b, b.center())
-            })
-            .unzip()
+        boxes_and_centroids(&tris)
     }
 
     /// A sky: the twelve triangles of the faces of a 100 x 40 x 60 box,
     /// and `contents` small triangles inside it.
     fn sky(contents: usize) -> (Vec<Aabb>, Vec<Vec3>) {
         let size = Vec3::new(100.0, 40.0, 60.0);
-        let corner =
-            |i: usize| Vec3::new((i & 1) as f32, (i >> 1 & 1) as f32, (i >> 2) as f32) * size;
-        // Each face's four corners in a loop, as indices into `corner`.
-        let faces = [
-            [0, 1, 3, 2],
-            [4, 5, 7, 6],
-            [0, 1, 5, 4],
-            [2, 3, 7, 6],
-            [0, 2, 6, 4],
-            [1, 3, 7, 5],
-        ];
-        let mut tris: Vec<[Vec3; 3]> = Vec::new();
-        for f in faces {
-            tris.push([corner(f[0]), corner(f[1]), corner(f[2])]);
-            tris.push([corner(f[0]), corner(f[2]), corner(f[3])]);
-        }
+        let mut tris = box_faces(Vec3::ZERO, size);
         let mut rng = Pcg64::seed_from_u64(48);
         let mut next = move || rng.gen_range(0.0f32..1.0);
         for _ in 0..contents {
@@ -925,12 +906,7 @@ mod tests {
             let mut corner = || c + Vec3::new(next(), next(), next());
             tris.push([corner(), corner(), corner()]);
         }
-        tris.iter()
-            .map(|t| {
-                let b = t.iter().fold(Aabb::EMPTY, |b, &p| b.grow(p));
-                (b, b.center())
-            })
-            .unzip()
+        boxes_and_centroids(&tris)
     }
 
     /// The most primitives in a leaf whose box holds at least `share` of

@@ -12,7 +12,7 @@ pub mod reinsert;
 pub mod simd;
 mod stats;
 #[cfg(test)]
-mod test_trees;
+pub(crate) mod test_trees;
 mod traverse;
 pub mod triangle4;
 mod validate;

@@ -58,3 +58,34 @@ pub(crate) fn two_layouts(a: Aabb, b: Aabb, c: Aabb) -> [[BvhNode; 5]; 2] {
         ],
     ]
 }
+
+/// The twelve triangles of the faces of the box from `lo` to `lo + size`,
+/// two per face.
+pub(crate) fn box_faces(lo: Vec3, size: Vec3) -> Vec<[Vec3; 3]> {
+    let corner =
+        |i: usize| lo + Vec3::new((i & 1) as f32, (i >> 1 & 1) as f32, (i >> 2) as f32) * size;
+    // Each face's four corners in a loop, as indices into `corner`.
+    let faces = [
+        [0, 1, 3, 2],
+        [4, 5, 7, 6],
+        [0, 1, 5, 4],
+        [2, 3, 7, 6],
+        [0, 2, 6, 4],
+        [1, 3, 7, 5],
+    ];
+    faces
+        .iter()
+        .flat_map(|f| [[f[0], f[1], f[2]], [f[0], f[2], f[3]]])
+        .map(|t| t.map(corner))
+        .collect()
+}
+
+/// Per triangle, its box and the box's centre: a build's input.
+pub(crate) fn boxes_and_centroids(tris: &[[Vec3; 3]]) -> (Vec<Aabb>, Vec<Vec3>) {
+    tris.iter()
+        .map(|t| {
+            let b = t.iter().fold(Aabb::EMPTY, |b, &p| b.grow(p));
+            (b, b.center())
+        })
+        .unzip()
+}

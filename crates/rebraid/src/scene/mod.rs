@@ -1719,22 +1719,8 @@ mod tests {
 
     /// The twelve triangles of the unit cube moved by `at`.
     fn cube(at: Vec3) -> TriangleMesh {
-        let positions = (0..8)
-            .map(|i| at + Vec3::new((i & 1) as f32, (i >> 1 & 1) as f32, (i >> 2) as f32))
-            .collect();
-        let faces = [
-            [0, 1, 3, 2],
-            [4, 5, 7, 6],
-            [0, 1, 5, 4],
-            [2, 3, 7, 6],
-            [0, 2, 6, 4],
-            [1, 3, 7, 5],
-        ];
-        let indices = faces
-            .iter()
-            .flat_map(|f| [[f[0], f[1], f[2]], [f[0], f[2], f[3]]])
-            .collect();
-        TriangleMesh::new(positions, indices).unwrap()
+        let tris = crate::bvh::test_trees::box_faces(at, Vec3::ONE);
+        TriangleMesh::from_triangles(&tris).unwrap()
     }
 
     #[test]
