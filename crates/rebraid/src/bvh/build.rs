@@ -379,7 +379,10 @@ pub fn build_bvh_aligned(
             .map(|r| (r.min_area_share * bounds.half_area(), r.max_volume_share)),
         volume_leaf: params.scene_volume_leaf_limit.and_then(|r| {
             let scene = r.scene_volume.unwrap_or_else(|| bounds.volume());
-            (scene > 0.0).then_some((r.min_volume_share * scene, r.max_primitives as usize))
+            // No volume (a flat scene) or too much for an `f32`: off.
+            let min_volume = r.min_volume_share * scene;
+            (scene > 0.0 && min_volume.is_finite())
+                .then_some((min_volume, r.max_primitives as usize))
         }),
     };
     let nodes = match build_part(&ctx, &mut prims, &mut scratch, 0, bounds, cbounds, 1) {

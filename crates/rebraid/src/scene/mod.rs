@@ -1280,11 +1280,14 @@ impl Scene {
                 &bounds(inst.object),
             ));
         }
-        if scene.is_empty() {
+        // A box too large for an `f32` volume (coordinates near
+        // `MAX_COORDINATE`) turns the limit off, as a flat scene does.
+        let volume = if scene.is_empty() {
             0.0
         } else {
             scene.volume()
-        }
+        };
+        if volume.is_finite() { volume } else { 0.0 }
     }
 
     /// Per object slot, the instance to bake it with, if any: the object is
@@ -1746,5 +1749,14 @@ mod tests {
         assert!((scene.scene_volume() - 20.0).abs() < 1e-3);
         scene.remove_instance(inst).unwrap();
         assert_eq!(scene.scene_volume(), 1.0);
+        // Beyond an `f32` volume: off, and the scene still commits.
+        let far = crate::mesh::MAX_COORDINATE * 0.9;
+        scene.add_object(cube(Vec3::splat(far))).unwrap();
+        scene.add_object(cube(Vec3::splat(-far))).unwrap();
+        assert_eq!(scene.scene_volume(), 0.0);
+        for mode in AccelMode::ALL {
+            scene.set_mode(mode);
+            scene.commit().unwrap();
+        }
     }
 }
