@@ -183,6 +183,14 @@ fn obj_splits_by_object_group_material_or_nothing() {
     assert_eq!(names(&load(Split::Group)), vec![("g1", 3), ("g2", 2)]);
     assert_eq!(names(&load(Split::Material)), vec![("red", 4), ("blue", 1)]);
     assert_eq!(names(&load(Split::None)), vec![("splits", 5)]);
+    // Indented statements name their objects as unindented ones do.
+    let indented: Vec<u8> = SPLITS_OBJ
+        .split(|&b| b == b'\n')
+        .flat_map(|l| [b" \t".as_slice(), l, b"\n"].concat())
+        .collect();
+    let q = write(dir.path(), "indented.obj", &indented);
+    let s = load_scene(&q, &opts(Split::Object, false)).unwrap();
+    assert_eq!(names(&s), vec![("A", 2), ("B", 3)]);
     // Each object gets only the vertices it uses.
     let b = &load(Split::Object).objects[1];
     assert_eq!(b.mesh.positions.len(), 4);

@@ -186,17 +186,17 @@ impl<'a> Parser<'a> {
             let Some(keyword) = tokens.next() else {
                 continue;
             };
+            // What follows the keyword (which indentation may put anywhere).
+            let rest = &line[keyword.as_ptr() as usize - line.as_ptr() as usize + keyword.len()..];
             match keyword {
                 b"v" => self.vertex(tokens)?,
                 b"f" | b"fo" => self.face(tokens)?,
                 b"o" => {
                     self.object_statements += 1;
-                    self.current[OBJECT] = self.name_statement(OBJECT, line, keyword.len());
+                    self.current[OBJECT] = self.name_statement(OBJECT, rest);
                 }
-                b"g" => self.current[GROUP] = self.name_statement(GROUP, line, keyword.len()),
-                b"usemtl" => {
-                    self.current[MATERIAL] = self.name_statement(MATERIAL, line, keyword.len())
-                }
+                b"g" => self.current[GROUP] = self.name_statement(GROUP, rest),
+                b"usemtl" => self.current[MATERIAL] = self.name_statement(MATERIAL, rest),
                 k if IGNORED.contains(&k) => {}
                 k if FREE_FORM.contains(&k) => {
                     return Err(self.err(
@@ -225,8 +225,8 @@ impl<'a> Parser<'a> {
     }
 
     /// The name after `o`, `g` or `usemtl`: the rest of the line, trimmed.
-    fn name_statement(&mut self, kind: usize, line: &[u8], keyword_len: usize) -> u32 {
-        let rest = String::from_utf8_lossy(&line[keyword_len..]);
+    fn name_statement(&mut self, kind: usize, rest: &[u8]) -> u32 {
+        let rest = String::from_utf8_lossy(rest);
         let name = rest.trim();
         if name.is_empty() {
             return 0;
