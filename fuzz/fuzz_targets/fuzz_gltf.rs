@@ -13,6 +13,7 @@ fuzz_target!(|data: &[u8]| {
             let opts = LoadOptions {
                 split,
                 flatten_instances,
+                ..LoadOptions::default()
             };
             if let Ok(l) = parse_gltf(data, Path::new("fuzz.glb"), None, &opts) {
                 assert!(l.scene.validate().is_ok());

@@ -39,6 +39,7 @@ fn main() -> anyhow::Result<()> {
     let opts = LoadOptions {
         split: Split::Object,
         flatten_instances: true,
+        ..LoadOptions::default()
     };
     let (desc, _) = input.load(&opts)?;
     let mut tris: Vec<[Vec3; 3]> = Vec::new();

@@ -67,6 +67,9 @@ fn main() -> anyhow::Result<()> {
         let opts = LoadOptions {
             split: Split::Object,
             flatten_instances: false,
+            // The objects as the file's `o` statements cut them: what
+            // these predictors were measured on (sessions 46 and 48).
+            keep_touching_apart: true,
         };
         let (desc, _) = input.load(&opts)?;
         // Placements: objects placed directly, then instances.

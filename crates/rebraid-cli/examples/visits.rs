@@ -41,6 +41,7 @@ fn main() -> anyhow::Result<()> {
         let opts = LoadOptions {
             split: Split::Object,
             flatten_instances: false,
+            ..LoadOptions::default()
         };
         let (desc, _) = input.load(&opts)?;
         let (_, bounds) = desc.world_boxes();

@@ -63,6 +63,10 @@ struct SceneOpts {
     /// Bake glTF instances into plain objects.
     #[arg(long)]
     flatten_instances: bool,
+    /// Keep OBJ objects that share vertex positions apart (by default they
+    /// are joined into one object).
+    #[arg(long)]
+    keep_touching_apart: bool,
     /// Camera as eye_x,eye_y,eye_z,target_x,target_y,target_z,fov (default: inside the scene box at centre - 0.3 x extent, looking at the centre).
     #[arg(long, allow_hyphen_values = true)]
     camera: Option<String>,
@@ -190,6 +194,7 @@ impl SceneOpts {
                 SplitArg::None => Split::None,
             },
             flatten_instances: self.flatten_instances,
+            keep_touching_apart: self.keep_touching_apart,
         }
     }
 
@@ -289,6 +294,7 @@ impl SceneOpts {
         ];
         let flags = [
             ("--flatten-instances", self.flatten_instances),
+            ("--keep-touching-apart", self.keep_touching_apart),
             ("--no-open-instances", self.no_open_instances),
             ("--open-only-overlapping", self.open_only_overlapping),
             ("--no-bake-instances", self.no_bake_instances),

@@ -28,10 +28,14 @@ fn env_u64(name: &str, default: u64) -> u64 {
 }
 
 fn run_obj(data: &[u8]) {
-    for split in [Split::Object, Split::Group, Split::Material, Split::None] {
+    for (split, keep_touching_apart) in [Split::Object, Split::Group, Split::Material, Split::None]
+        .into_iter()
+        .flat_map(|s| [(s, false), (s, true)])
+    {
         let opts = LoadOptions {
             split,
-            flatten_instances: false,
+            keep_touching_apart,
+            ..LoadOptions::default()
         };
         if let Ok(s) = parse_obj(data, Path::new("fuzz.obj"), &opts) {
             s.validate().expect("a parsed OBJ scene validates");
@@ -53,6 +57,7 @@ fn run_gltf(data: &[u8]) {
             let opts = LoadOptions {
                 split,
                 flatten_instances,
+                ..LoadOptions::default()
             };
             if let Ok(l) = parse_gltf(data, Path::new("fuzz.glb"), None, &opts) {
                 l.scene.validate().expect("a parsed glTF scene validates");

@@ -16,10 +16,12 @@ use rebraid_cli::loaders::{
 };
 use support::gltf::{QUAD, glb, glb_buffer, tiny_gltf_json};
 
+/// The split alone: OBJ objects that touch are kept apart.
 fn opts(split: Split, flatten_instances: bool) -> LoadOptions {
     LoadOptions {
         split,
         flatten_instances,
+        keep_touching_apart: true,
     }
 }
 
@@ -47,12 +49,17 @@ fn real_obj_scenes_match_the_readme() {
     let Some(dir) = scenes::scenes_dir_or_skip() else {
         return;
     };
-    for (file, objects, tris, overlap) in [
-        ("samurai_monastery.obj", 81, 124_789, 5.2),
-        ("nexuiz_ons_reborn.obj", 114, 125_101, 21.8),
-        ("openarena_oa_thor.obj", 51, 57_743, 9.6),
+    // (file, `o` objects, objects once those that touch are joined,
+    // triangles, overlap of the `o` objects)
+    for (file, objects, joined, tris, overlap) in [
+        ("samurai_monastery.obj", 81, 51, 124_789, 5.2),
+        ("nexuiz_ons_reborn.obj", 114, 28, 125_101, 21.8),
+        ("openarena_oa_thor.obj", 51, 11, 57_743, 9.6),
     ] {
-        let s = timed_load(&dir.join(file), &LoadOptions::default());
+        let default = timed_load(&dir.join(file), &LoadOptions::default());
+        assert_eq!(default.objects.len(), joined, "{file}");
+        assert_eq!(default.world_triangles(), tris, "{file}");
+        let s = timed_load(&dir.join(file), &opts(Split::Object, false));
         assert_eq!(s.objects.len(), objects, "{file}");
         assert_eq!(s.world_triangles(), tris, "{file}");
         assert!(s.instances.is_empty());
@@ -205,10 +212,65 @@ fn obj_with_one_object_falls_back_to_materials() {
         "one.obj",
         b"o only\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl a\nf 1 2 3\nusemtl b\nf 3 2 1\nf 1 3 2\n",
     );
-    let s = load_scene(&p, &LoadOptions::default()).unwrap();
+    let s = load_scene(&p, &opts(Split::Object, false)).unwrap();
     assert_eq!(names(&s), vec![("a", 1), ("b", 2)]);
     let s = load_scene(&p, &opts(Split::Group, false)).unwrap();
     assert_eq!(names(&s), vec![("one", 3)]);
+    // By default the two materials, which share vertices, are one object.
+    let s = load_scene(&p, &LoadOptions::default()).unwrap();
+    assert_eq!(names(&s), vec![("a", 3)]);
+}
+
+/// Objects A, B, C, D, E: B repeats one of A's positions under its own
+/// vertex (as exporters write the two sides of a cut), D one of B's at
+/// `-0.0` where B has `0.0`, C only comes near A (another position, no
+/// shared one), and E shares A's vertex indices (the same `v` lines).
+const TOUCHING_OBJ: &[u8] = b"o A\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n\
+    o B\nv 1 0 0\nv 2 0 0\nv 2 1 0\nf 4 5 6\n\
+    o C\nv 0 0 0.001\nv -1 0 0\nv 0 -1 0\nf 7 8 9\n\
+    o D\nv 2 1 -0\nv 3 1 0\nv 3 2 0\nf 10 11 12\nf 12 11 10\n\
+    o E\nf 1 3 2\n";
+
+#[test]
+fn obj_objects_that_touch_are_joined() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = write(dir.path(), "touching.obj", TOUCHING_OBJ);
+    let apart = load_scene(&p, &opts(Split::Object, false)).unwrap();
+    assert_eq!(
+        names(&apart),
+        vec![("A", 1), ("B", 1), ("C", 1), ("D", 2), ("E", 1)]
+    );
+    // A, B, D and E are one set (D through B), named after its first
+    // object; C stays apart. The sets keep their first objects' order.
+    let joined = load_scene(&p, &LoadOptions::default()).unwrap();
+    assert_eq!(names(&joined), vec![("A", 5), ("C", 1)]);
+    // The same triangles, in the members' order, with the members'
+    // vertices (the duplicated positions stay separate vertices).
+    let a = &joined.objects[0].mesh;
+    let want: Vec<[rebraid::glam::Vec3; 3]> = [0, 1, 3, 4]
+        .iter()
+        .flat_map(|&o| {
+            let m = &apart.objects[o].mesh;
+            (0..m.len()).map(|t| m.triangle(t)).collect::<Vec<_>>()
+        })
+        .collect();
+    assert_eq!(
+        (0..a.len()).map(|t| a.triangle(t)).collect::<Vec<_>>(),
+        want
+    );
+    assert_eq!(a.positions.len(), 3 + 3 + 3);
+    assert!(joined.objects.iter().all(|o| o.placed));
+    joined.validate().unwrap();
+    // Every split joins the same way; without a split there is one object.
+    let groups = load_scene(
+        &p,
+        &LoadOptions {
+            split: Split::Group,
+            ..LoadOptions::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(names(&groups), vec![("touching", 6)]);
 }
 
 /// A unit cube as a PLY header (after the format line) and its elements.

@@ -23,7 +23,9 @@ pub mod ply;
 
 /// What becomes one object of the scene.
 ///
-/// OBJ honours all four; glTF uses [`Split::Material`] for "one object per
+/// OBJ honours all four, and then joins the objects that share a vertex
+/// position (pieces of one surface; [`LoadOptions::keep_touching_apart`]
+/// keeps them apart); glTF uses [`Split::Material`] for "one object per
 /// primitive" and one object per mesh otherwise; PLY always gives one object.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum Split {
@@ -48,6 +50,10 @@ pub struct LoadOptions {
     /// object instead of emitting instances (for comparing against a flat
     /// BVH over the same world geometry).
     pub flatten_instances: bool,
+    /// OBJ only: keep every object of the split apart, even those whose
+    /// triangles share a vertex position (by default such objects are joined
+    /// into one: see [`obj`]).
+    pub keep_touching_apart: bool,
 }
 
 /// Where in a file something went wrong.
