@@ -30,7 +30,6 @@
 //! without a single triangle.
 
 use std::collections::HashMap;
-use std::hash::{BuildHasherDefault, Hasher};
 use std::path::Path;
 
 use glam::Vec3;
@@ -476,8 +475,11 @@ impl<'a> Parser<'a> {
         let mut parent: Vec<u32> = (0..ranges.len() as u32).collect();
         // The first object to use each position, and per vertex the last
         // object that looked it up (each object looks a vertex up once).
-        let mut first_user: HashMap<[u32; 3], u32, BuildHasherDefault<PositionHasher>> =
-            HashMap::with_capacity_and_hasher(self.positions.len(), Default::default());
+        // (aHash: with the default SipHash the join took about twice as
+        // long, nexuiz loading in 42-47 ms against 33-38 ms, 28-34 without
+        // the join, by run.)
+        let mut first_user: ahash::AHashMap<[u32; 3], u32> =
+            ahash::AHashMap::with_capacity(self.positions.len());
         let mut seen_by = vec![u32::MAX; self.positions.len()];
         for (slot, (_, rs)) in ranges.iter().enumerate() {
             let slot = slot as u32;
@@ -512,46 +514,5 @@ impl<'a> Parser<'a> {
             }
         }
         joined
-    }
-}
-
-/// Hashes vertex positions (three `f32` bit patterns) for
-/// [`Parser::join_touching`]: the multiply-rotate hash of Firefox and
-/// rustc (FxHash). With the default SipHash the join took about twice as
-/// long: nexuiz loaded in 42-47 ms against 36-38 (32-34 without the join).
-/// The keys come from the file, but a collision only costs a comparison.
-#[derive(Default)]
-struct PositionHasher(u64);
-
-impl PositionHasher {
-    #[inline]
-    fn add(&mut self, word: u64) {
-        self.0 = (self.0.rotate_left(5) ^ word).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
-    }
-}
-
-impl Hasher for PositionHasher {
-    #[inline]
-    fn write(&mut self, bytes: &[u8]) {
-        for chunk in bytes.chunks(8) {
-            let mut word = [0u8; 8];
-            word[..chunk.len()].copy_from_slice(chunk);
-            self.add(u64::from_le_bytes(word));
-        }
-    }
-
-    #[inline]
-    fn write_u32(&mut self, v: u32) {
-        self.add(u64::from(v));
-    }
-
-    #[inline]
-    fn write_usize(&mut self, v: usize) {
-        self.add(v as u64);
-    }
-
-    #[inline]
-    fn finish(&self) -> u64 {
-        self.0
     }
 }
