@@ -501,16 +501,16 @@ impl<'a> Parser<'a> {
                 }
             }
         }
+        // Each set's place in `joined`, by its root (a slot).
+        let mut at = vec![usize::MAX; ranges.len()];
         let mut joined: Vec<(String, Vec<(usize, usize)>)> = Vec::new();
-        let mut at: HashMap<u32, usize> = HashMap::new();
         for (slot, (name, rs)) in ranges.into_iter().enumerate() {
-            let r = root(&mut parent, slot as u32);
-            match at.get(&r) {
-                Some(&i) => joined[i].1.extend(rs),
-                None => {
-                    at.insert(r, joined.len());
-                    joined.push((name, rs));
-                }
+            let r = root(&mut parent, slot as u32) as usize;
+            if at[r] == usize::MAX {
+                at[r] = joined.len();
+                joined.push((name, rs));
+            } else {
+                joined[at[r]].1.extend(rs);
             }
         }
         joined
